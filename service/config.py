@@ -1,0 +1,119 @@
+"""One frozen configuration for the engine and the daemon. The CLI and the TOML loader only build it.
+
+Every field carries its unit in its name or docstring. Fields marked *shape* change array shapes of the
+jitted solve: changing them costs one recompilation (1-2 s), nothing else does.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from pathlib import Path
+
+
+class ConfigError(ValueError):
+    """A configuration file or flag is invalid; the message says what is valid."""
+
+
+@dataclasses.dataclass(frozen=True)
+class EngineConfig:
+    """Tracking-engine parameters."""
+
+    max_markers: int = 96
+    """*shape* Markers per subject the solve is compiled for (padded with masks)."""
+    max_skip_frames: int = 10
+    """Frames in a row the skeleton solve may be skipped while NNT labels everything (0 = solve always)."""
+    nnt_gate_m: float = 0.03
+    """Gate [m] between a tracked marker's constant-velocity prediction and a point."""
+    reacquire_gate_m: float = 0.045
+    """Gate [m] between a skeleton-predicted (occluded) marker and a point for the Hungarian assignment."""
+    rigid_check_m: float = 0.025
+    """A tracked label farther than this [m] (plus 4x the partners' misfit) from where its rigid partners put
+    the marker is withdrawn (swaps, ghosts)."""
+    reject_residual_m: float = 0.06
+    """A label whose point is farther than this [m] from the fitted model is withdrawn."""
+    prior_weight: float = 0.05
+    """Weight of the prior pulling the pose toward its prediction, relative to one marker residual [m/rad]."""
+    solver_max_steps: int = 8
+    """Gauss-Newton iterations per solve."""
+    solver_rtol: float = 1e-4
+    """Relative tolerance of the Gauss-Newton solve."""
+    tpose_auto: bool = True
+    """Detect people standing in a T-pose in unlabeled points and create subjects from them."""
+    tpose_window_frames: int = 24
+    """Frames a T-pose candidate must hold still before a subject is created from it."""
+    max_points: int = 4096
+    """Frames with more points are rejected as malformed (a capture volume never sees that many)."""
+    lost_after_s: float = 2.0
+    """A subject with no labeled marker for this long [s] is reported lost (kept, re-found by prediction)."""
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and v < 0:
+                raise ConfigError(f"{f.name} must be >= 0, got {v}")
+        if self.max_markers < 4:
+            raise ConfigError(f"max_markers must be >= 4, got {self.max_markers}")
+
+
+@dataclasses.dataclass(frozen=True)
+class ServiceConfig:
+    """Daemon parameters (endpoints, queues, state)."""
+
+    frames_endpoint: str = "tcp://127.0.0.1:7701"
+    """Where the daemon binds its SUB socket for frames."""
+    publish_endpoint: str = "tcp://127.0.0.1:7702"
+    """Where the daemon binds its PUB socket for labels, poses, skeletons and status."""
+    control_endpoint: str = "tcp://127.0.0.1:7703"
+    """Where the daemon binds its REP socket for commands."""
+    state_dir: str = "~/.local/state/mocap-labeler"
+    """Directory where subject calibrations are saved on stop/`save` and restored on start."""
+    status_period_s: float = 1.0
+    """Seconds between two `status` messages."""
+    max_queue_frames: int = 64
+    """Frames the daemon buffers (ZeroMQ high-water mark); beyond it the oldest are dropped and counted."""
+    cache_dir: str = "~/.cache/mocap-labeler/jax"
+    """JAX persistent compilation cache directory ("" disables it)."""
+    engine: EngineConfig = dataclasses.field(default_factory=EngineConfig)
+
+
+def _build(cls, table: dict, where: str):
+    names = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in table.items():
+        if key not in names:
+            valid = ", ".join(sorted(n for n in names if n != "engine"))
+            raise ConfigError(f"unknown key {where}{key!r}; valid keys: {valid}")
+        if key == "engine":
+            if not isinstance(value, dict):
+                raise ConfigError("[engine] must be a table")
+            value = _build(EngineConfig, value, "engine.")
+        else:
+            default = getattr(cls(), key)
+            if isinstance(default, bool) != isinstance(value, bool) or not isinstance(
+                value, (type(default), int) if isinstance(default, float) else type(default)
+            ):
+                raise ConfigError(f"{where}{key} must be {type(default).__name__}, got {value!r}")
+        kwargs[key] = value
+    return cls(**kwargs)
+
+
+def load_config(path: str | Path | None = None, **overrides) -> ServiceConfig:
+    """Build a ServiceConfig from an optional TOML file, then keyword overrides (None values ignored).
+
+    The file has top-level daemon keys and an ``[engine]`` table, with the field names above.
+    """
+    table: dict = {}
+    if path is not None:
+        try:
+            table = tomllib.loads(Path(path).read_text())
+        except FileNotFoundError:
+            raise ConfigError(f"config file {path} does not exist") from None
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+            raise ConfigError(f"config file {path} is not valid TOML: {e}") from None
+    engine_over = {k[len("engine_"):]: v for k, v in overrides.items() if k.startswith("engine_") and v is not None}
+    service_over = {k: v for k, v in overrides.items() if not k.startswith("engine_") and v is not None}
+    if engine_over:
+        table.setdefault("engine", {}).update(engine_over)
+    table.update(service_over)
+    return _build(ServiceConfig, table, "")

@@ -1,0 +1,371 @@
+"""The engine: one registry of tracked subjects for each capture stream, and `Engine.step`, which turns
+one unordered frame into labeled markers and poses for every subject.
+
+The per-subject hot path is pure (`service.tracker.step`); this module owns the mutable state: which
+subjects exist, their calibrations (`SubjectModel`) and their tracking state, and which points each
+subject claimed this frame so no point gets two labels.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from protocol.skeleton import PARENTS, SEGMENTS
+from recordings.recording import split_label
+from service import calibration, tracker
+from service.config import EngineConfig
+from service.kinematics import joint_angles, matrix_to_quat_xyzw
+from service.solver import PoseSolver
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameInput:
+    """One frame from a capture system, already in metres, z up."""
+
+    stream: str
+    frame: int
+    t_ns: int
+    points_m: np.ndarray  # (N, 3) float
+    labels: list[str] | None = None  # N labels "Subject:Marker", "" = unlabeled; seeds or corrects
+
+
+@dataclasses.dataclass(frozen=True)
+class SubjectOutput:
+    """What the engine says about one subject for one frame (the labels + pose messages)."""
+
+    subject: str
+    stream: str
+    frame: int
+    t_ns: int
+    markers: tuple[str, ...]
+    point_index: np.ndarray  # (M,) int32, index into the frame's points, -1 = not observed
+    positions_m: np.ndarray  # (M, 3) float32, observed positions, NaN where -1
+    predicted_m: np.ndarray  # (M, 3) float32, model position of every marker (fills occlusions)
+    solved: bool  # whether the pose optimisation ran this frame
+    iterations: int  # Gauss-Newton iterations (0 when skipped)
+    residual_m: float  # RMS marker residual of the fit [m] (NaN when skipped)
+    root_position_m: np.ndarray  # (3,) float32
+    rotations_xyzw: np.ndarray  # (14, 4) float32: root in world, others relative to parent
+    joint_angles_rad: np.ndarray  # (13, 3) float32, protocol.skeleton.JOINT_ANGLE_CONVENTION
+    has_pose: bool = True  # False until the subject's skeleton is calibrated: publish labels, no pose
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameStats:
+    """Per-frame bookkeeping for status counters."""
+
+    n_points: int  # points received
+    n_invalid: int  # NaN/inf points dropped
+    n_labeled: int  # points given a label by any subject
+    new_subjects: tuple[str, ...]  # subjects created this frame (publish their skeleton description)
+
+
+class EngineError(ValueError):
+    """A request the engine cannot serve (unknown subject, unreadable calibration); says what is valid."""
+
+
+HISTORY_FRAMES = 240  # labeled frames kept per subject for (re)calibration
+
+
+@dataclasses.dataclass
+class _Subject:
+    stream: str
+    model: tracker.SubjectModel
+    state: tracker.TrackState
+    history: collections.deque  # of (M, 3) labeled positions, NaN = unlabeled
+    next_calibration_frame: int = 0
+
+
+@dataclasses.dataclass
+class _TposeCandidate:
+    """Points seen in a T-pose, tracked still for a window before they become a subject."""
+
+    tracks: list  # per track: list of (frame_count, position)
+    frames: int = 0
+
+
+class Engine:
+    """Registry of subjects per stream; see the module docstring."""
+
+    def __init__(self, config: EngineConfig = EngineConfig()):
+        self.config = config
+        self.solver = PoseSolver(config.max_markers, config.solver_max_steps, config.solver_rtol, config.prior_weight)
+        self._subjects: dict[str, _Subject] = {}
+        self._candidates: dict[str, _TposeCandidate] = {}
+        self._auto_count = 0
+
+    # ---------------------------------------------------------------- lifecycle
+    def warm_up(self) -> float:
+        """Compile the jitted solve and FK once (or load them from the persistent cache)."""
+        t0 = time.perf_counter()
+        m = 8
+        self.solver.fit(
+            np.zeros(3), np.tile(np.eye(3), (14, 1, 1)), np.zeros((14, 3)), np.zeros(m, int), np.zeros((m, 3)),
+            np.zeros((m, 3)), np.ones(m, bool),
+        )
+        self.solver.predict(np.zeros(3), np.tile(np.eye(3), (14, 1, 1)), np.zeros((14, 3)), np.zeros(m, int), np.zeros((m, 3)))
+        return time.perf_counter() - t0
+
+    def subjects(self) -> list[str]:
+        return list(self._subjects)
+
+    def reset(self, subject: str | None = None) -> list[str]:
+        if subject is None:
+            names = list(self._subjects)
+            self._subjects.clear()
+            self._candidates.clear()
+            return names
+        if subject not in self._subjects:
+            raise EngineError(f"no subject {subject!r}; subjects: {', '.join(self._subjects) or 'none'}")
+        del self._subjects[subject]
+        return [subject]
+
+    def describe(self, subject: str) -> dict:
+        if subject not in self._subjects:
+            raise EngineError(f"no subject {subject!r}; subjects: {', '.join(self._subjects) or 'none'}")
+        s = self._subjects[subject]
+        m = s.model
+        return {
+            "subject": m.name,
+            "stream": s.stream,
+            "segments": list(SEGMENTS),
+            "parents": list(PARENTS),
+            "markers": list(m.markers),
+            "marker_segment": np.asarray(m.marker_segment, np.int32),
+            "marker_offsets_m": np.asarray(m.marker_offsets_m, np.float32),
+            "joint_offsets_m": np.asarray(m.joint_offsets_m, np.float32),
+            "has_skeleton": m.has_skeleton,
+        }
+
+    def save(self, directory) -> list[str]:
+        """Write every subject's calibration (and last known marker positions) to `directory`."""
+        d = Path(directory).expanduser()
+        d.mkdir(parents=True, exist_ok=True)
+        for name, s in self._subjects.items():
+            m = s.model
+            np.savez(
+                d / f"{name}.npz",
+                meta=json.dumps({"name": name, "stream": s.stream, "markers": list(m.markers), "has_skeleton": m.has_skeleton}),
+                marker_segment=m.marker_segment, marker_offsets_m=m.marker_offsets_m, joint_offsets_m=m.joint_offsets_m,
+                pos_m=s.state.pos_m, ever_seen=s.state.ever_seen, t_root_m=s.state.t_root_m, R_parent_segment=s.state.R_parent_segment,
+                dist_n=s.state.dist_n, dist_mean_m=s.state.dist_mean_m, dist_var_m2=s.state.dist_var_m2,
+            )
+        return list(self._subjects)
+
+    def load(self, directory) -> list[str]:
+        """Restore calibrations saved by `save`; tracking resumes where each subject was last seen."""
+        d = Path(directory).expanduser()
+        loaded = []
+        for f in sorted(d.glob("*.npz")) if d.is_dir() else []:
+            try:
+                with np.load(f) as z:
+                    meta = json.loads(str(z["meta"]))
+                    model = tracker.SubjectModel(
+                        meta["name"], tuple(meta["markers"]), z["marker_segment"], z["marker_offsets_m"], z["joint_offsets_m"],
+                        bool(meta["has_skeleton"]),
+                    )
+                    pos = np.where(z["ever_seen"][:, None], z["pos_m"], np.nan)
+                    st = tracker.new_state(model, pos, 0)
+                    st.labeled[:] = False
+                    st.dist_n, st.dist_mean_m, st.dist_var_m2 = z["dist_n"], z["dist_mean_m"], z["dist_var_m2"]
+                    tracker._update_partners(st)
+                    st.t_root_m, st.R_parent_segment = z["t_root_m"], z["R_parent_segment"]
+            except (OSError, KeyError, ValueError) as e:
+                raise EngineError(f"calibration file {f} is unreadable: {e}") from None
+            self._subjects[model.name] = _Subject(meta["stream"], model, st, collections.deque(maxlen=HISTORY_FRAMES))
+            loaded.append(model.name)
+        return loaded
+
+    # ---------------------------------------------------------------- the frame loop
+    def step(self, frame: FrameInput) -> tuple[list[SubjectOutput], FrameStats]:
+        """Label one frame. Non-finite points are dropped and counted; labels of the wrong length ignored."""
+        pts = np.asarray(frame.points_m, dtype=np.float64).reshape(-1, 3)
+        finite = np.all(np.isfinite(pts), axis=1)
+        n_invalid = int((~finite).sum())
+        keep = np.flatnonzero(finite)
+        points = pts[keep]
+        labels = frame.labels if frame.labels is not None and len(frame.labels) == len(pts) else None
+        free = np.ones(len(points), bool)
+        outputs: list[SubjectOutput] = []
+        new_subjects: list[str] = []
+        given: dict[str, dict[str, int]] = {}
+        if labels is not None:
+            for j, i in enumerate(keep):
+                lab = labels[i].strip() if isinstance(labels[i], str) else ""
+                if lab and not lab.split(":")[-1].startswith("*"):
+                    subj, marker = split_label(lab)
+                    given.setdefault(subj or "subject", {})[marker] = j
+        for name, marks in given.items():
+            s, created = self._labeled_subject(frame, name, marks, points)
+            if created:
+                new_subjects.append(name)
+            free[list(marks.values())] = False
+            outputs.append(self._observe(s, frame, points, marks, keep, append=not created))
+        order = sorted(
+            (n for n, s in self._subjects.items() if s.stream == frame.stream and n not in given),
+            key=lambda n: -self._subjects[n].state.last_labeled_t_ns,
+        )
+        for name in order:
+            s = self._subjects[name]
+            self._maybe_calibrate(s, frame)
+            s.state, res = tracker.step(s.model, s.state, points, free, frame.t_ns, self.config, self.solver)
+            free[res.point_index[res.point_index >= 0]] = False
+            cur = np.where((res.point_index >= 0)[:, None], points[np.maximum(res.point_index, 0)], np.nan)
+            s.history.append(cur)
+            outputs.append(self._output(s, frame, res, keep))
+        if self.config.tpose_auto and labels is None:
+            new_subjects += self._find_tposes(frame, points, free)
+        n_labeled = int(sum(int((o.point_index >= 0).sum()) for o in outputs))
+        return outputs, FrameStats(len(pts), n_invalid, n_labeled, tuple(new_subjects))
+
+    def _labeled_subject(self, frame, name, marks, points):
+        s = self._subjects.get(name)
+        new = [m for m in marks if s is None or m not in s.model.markers]
+        if s is not None and not new:
+            return s, False
+        old = () if s is None else s.model.markers
+        markers = (old + tuple(sorted(new)))[: self.config.max_markers]
+        m = len(markers)
+        model = tracker.SubjectModel(name, markers, np.zeros(m, int), np.zeros((m, 3)), np.zeros((14, 3)), False)
+        hist = collections.deque(maxlen=HISTORY_FRAMES)
+        if s is not None:
+            for h in s.history:
+                hist.append(np.concatenate([h, np.full((m - len(h), 3), np.nan)]))
+        cur = _positions(markers, marks, points)
+        hist.append(cur)
+        st = tracker.new_state(model, cur, frame.t_ns, np.stack(hist))
+        s = _Subject(frame.stream, model, st, hist, next_calibration_frame=0)
+        self._subjects[name] = s
+        return s, True
+
+    def _observe(self, s: _Subject, frame, points, marks, keep, append: bool) -> SubjectOutput:
+        cur = _positions(s.model.markers, marks, points)
+        if append:
+            s.history.append(cur)
+        if not s.model.has_skeleton and len(s.history) >= HISTORY_FRAMES:
+            self._maybe_calibrate(s, frame)
+        s.state, res = tracker.observe(s.model, s.state, cur, frame.t_ns, self.config, self.solver)
+        idx = np.array([marks.get(m, -1) for m in s.model.markers], np.int32)
+        res = dataclasses.replace(res, point_index=idx)
+        return self._output(s, frame, res, keep)
+
+    def _maybe_calibrate(self, s: _Subject, frame) -> None:
+        """Fit a skeleton once an upright pose is in the labeled history; retry every second if not."""
+        if s.model.has_skeleton or s.state.frames < s.next_calibration_frame or len(s.history) < 12:
+            return
+        s.next_calibration_frame = s.state.frames + 120
+        hist = np.stack(s.history)
+        ref = calibration.fill_reference(hist)
+        ok = np.isfinite(ref[:, 0])
+        try:
+            seg, off, joints, t_root, R = calibration.calibrate(np.where(ok[:, None], ref, np.nan))
+        except calibration.CalibrationError:
+            return
+        # markers never seen yet keep no segment until they are: park them on the pelvis with zero weight
+        off = np.where(ok[:, None], off, 0.0)
+        s.model = dataclasses.replace(s.model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints, has_skeleton=True)
+        s.state.t_root_m, s.state.R_parent_segment = t_root, R
+        # bring the calibration pose up to now with one solve on the latest labels
+        last = hist[-1]
+        lab = np.isfinite(last[:, 0])
+        tracker._fit(s.model, s.state, self.solver, last, lab)
+
+    def _find_tposes(self, frame, points, free) -> list[str]:
+        """Automatic initialisation: T-pose groups tracked still for a window become subjects."""
+        key = frame.stream
+        cand = self._candidates.get(key)
+        created = []
+        if cand is None:
+            groups = calibration.detect_tpose(points, free) if frame.frame % 4 == 0 else []
+            if groups:
+                g = groups[0]
+                self._candidates[key] = _TposeCandidate([[(0, points[i])] for i in g], 1)
+            return created
+        # track the candidate's points with a tight gate (the person stands still)
+        last = np.array([t[-1][1] for t in cand.tracks])
+        idx = np.flatnonzero(free)
+        if len(idx):
+            d = np.linalg.norm(last[:, None] - points[idx][None], axis=2)
+            from scipy.optimize import linear_sum_assignment
+
+            cost = np.where(d < 0.02, d, 1e6)
+            r, c = linear_sum_assignment(cost)
+            ok = cost[r, c] < 1e6
+            for ti, pj in zip(r[ok], c[ok]):
+                cand.tracks[ti].append((cand.frames, points[idx[pj]]))
+            used = set(c[ok].tolist())
+            lo, hi = last.min(0) - 0.3, last.max(0) + 0.3
+            for k, pj in enumerate(idx):
+                if k not in used and np.all(points[pj] > lo) and np.all(points[pj] < hi):
+                    cand.tracks.append([(cand.frames, points[pj])])
+        cand.frames += 1
+        if cand.frames < self.config.tpose_window_frames:
+            return created
+        del self._candidates[key]
+        W = cand.frames
+        keep = [t for t in cand.tracks if len(t) >= 0.5 * W]
+        if len(keep) < 8 or len(keep) > self.config.max_markers:
+            return created
+        hist = np.full((W, len(keep), 3), np.nan)
+        for j, t in enumerate(keep):
+            for f, p in t:
+                hist[f, j] = p
+        ref = calibration.fill_reference(hist)
+        if not calibration.is_tpose(ref):
+            return created
+        self._auto_count += 1
+        name = f"S{self._auto_count}"
+        while name in self._subjects:
+            self._auto_count += 1
+            name = f"S{self._auto_count}"
+        markers = tuple(f"M{j:02d}" for j in range(len(keep)))
+        m = len(markers)
+        model = tracker.SubjectModel(name, markers, np.zeros(m, int), np.zeros((m, 3)), np.zeros((14, 3)), False)
+        # the tracker starts from the window's last positions; markers unseen in the last frame coast
+        cur = hist[-1]
+        st = tracker.new_state(model, np.where(np.isfinite(cur[:, :1]), cur, ref), frame.t_ns, hist)
+        st.labeled = np.isfinite(cur[:, 0])
+        s = _Subject(frame.stream, model, st, collections.deque(list(hist), maxlen=HISTORY_FRAMES))
+        self._subjects[name] = s
+        self._maybe_calibrate(s, frame)
+        created.append(name)
+        return created
+
+    def _output(self, s: _Subject, frame, res: tracker.StepResult, keep) -> SubjectOutput:
+        idx = res.point_index.copy()
+        pts = np.asarray(frame.points_m, np.float64).reshape(-1, 3)
+        idx = np.where(idx >= 0, keep[np.maximum(idx, 0)], -1).astype(np.int32)  # back to the frame's indexing
+        positions = np.where((idx >= 0)[:, None], pts[np.maximum(idx, 0)], np.nan).astype(np.float32)
+        st = s.state
+        return SubjectOutput(
+            subject=s.model.name,
+            stream=s.stream,
+            frame=frame.frame,
+            t_ns=frame.t_ns,
+            markers=s.model.markers,
+            point_index=idx,
+            positions_m=positions,
+            predicted_m=np.asarray(res.predicted_m, np.float32),
+            solved=res.solved,
+            iterations=res.iterations,
+            residual_m=res.residual_m,
+            root_position_m=np.asarray(st.t_root_m, np.float32),
+            rotations_xyzw=matrix_to_quat_xyzw(st.R_parent_segment).astype(np.float32),
+            joint_angles_rad=joint_angles(st.R_parent_segment).astype(np.float32),
+            has_pose=s.model.has_skeleton,
+        )
+
+
+def _positions(markers, marks: dict, points: np.ndarray) -> np.ndarray:
+    cur = np.full((len(markers), 3), np.nan)
+    for k, m in enumerate(markers):
+        j = marks.get(m)
+        if j is not None:
+            cur[k] = points[j]
+    return cur

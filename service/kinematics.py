@@ -1,0 +1,76 @@
+"""Forward kinematics of the 14-segment skeleton in JAX, and its rotation helpers.
+
+Parametrisation (45 DOF): the root translation t_world_pelvis [m] (3) and, for every segment, a small
+rotation vector delta_i [rad] (14 x 3 = 42) applied on top of a base rotation R_base_i that the caller
+passes in (the last solved pose). R_parent_segment_i = exp(delta_i) @ R_base_i, so the unknowns stay near
+zero and the exponential map is never near its 2*pi singularity, however far a subject turns; 6 of them
+(t and delta_0) are the root's, 3 per ball joint for the 13 others.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from protocol.skeleton import PARENTS
+
+
+def rotvec_to_matrix(v: jax.Array) -> jax.Array:
+    """Rodrigues' formula, (..., 3) [rad] -> (..., 3, 3); exact and differentiable at 0."""
+    theta2 = jnp.sum(v * v, axis=-1, keepdims=True)[..., None]
+    safe = jnp.where(theta2 > 1e-12, theta2, 1.0)
+    theta = jnp.sqrt(safe)
+    # Taylor expansions below 1e-6 rad keep the gradient finite at exactly zero.
+    a = jnp.where(theta2 > 1e-12, jnp.sin(theta) / theta, 1.0 - theta2 / 6.0)
+    b = jnp.where(theta2 > 1e-12, (1.0 - jnp.cos(theta)) / safe, 0.5 - theta2 / 24.0)
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    zero = jnp.zeros_like(x)
+    K = jnp.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(v.shape[:-1] + (3, 3))
+    eye = jnp.eye(3, dtype=v.dtype)
+    return eye + a * K + b * (K @ K)
+
+
+def segment_transforms(
+    t_world_root: jax.Array, R_parent_segment: jax.Array, joint_offsets_m: jax.Array
+) -> tuple[jax.Array, jax.Array]:
+    """World rotations (14, 3, 3) and origins (14, 3) [m] of every segment.
+
+    R_parent_segment: (14, 3, 3), the root's relative to the world. joint_offsets_m: (14, 3), each
+    segment's origin in its parent's frame (the root's row is unused).
+    """
+    Rs = [R_parent_segment[0]]
+    ps = [t_world_root]
+    for i in range(1, len(PARENTS)):  # static loop: unrolled once at trace time
+        p = PARENTS[i]
+        Rs.append(Rs[p] @ R_parent_segment[i])
+        ps.append(ps[p] + Rs[p] @ joint_offsets_m[i])
+    return jnp.stack(Rs), jnp.stack(ps)
+
+
+def marker_positions(
+    Rs_world_segment: jax.Array, ps_world_segment: jax.Array, marker_segment: jax.Array, marker_offsets_m: jax.Array
+) -> jax.Array:
+    """(M, 3) world positions [m] of markers fixed at `marker_offsets_m` in their segments' frames."""
+    R = Rs_world_segment[marker_segment]
+    return jnp.einsum("mij,mj->mi", R, marker_offsets_m) + ps_world_segment[marker_segment]
+
+
+def matrix_to_quat_xyzw(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) -> (..., 4) unit quaternions x, y, z, w (numpy; outputs only, off the hot path)."""
+    from scipy.spatial.transform import Rotation
+
+    shape = R.shape[:-2]
+    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat().reshape(shape + (4,))
+
+
+def joint_angles(R_parent_segment: np.ndarray) -> np.ndarray:
+    """(14, 3, 3) relative rotations -> (13, 3) intrinsic YXZ angles [rad] of every ball joint
+    (protocol.skeleton.JOINT_ANGLE_CONVENTION)."""
+    import warnings
+
+    from scipy.spatial.transform import Rotation
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # gimbal lock at +-90 deg middle angle: still valid angles
+        return Rotation.from_matrix(R_parent_segment[1:]).as_euler("YXZ")

@@ -1,0 +1,415 @@
+"""Per-subject labeling, the paper's loop made robust: `step(model, state, points, free, t_ns)`.
+
+1. Tracking (NNT): markers labeled in the previous frame are predicted at constant velocity and matched
+   one-to-one to points with the Hungarian method inside a gate that widens with speed x frame time.
+2. The skeleton fit (optimistix Gauss-Newton, `service.solver`) runs when something is left unexplained
+   (a point near the subject without a label, an occluded marker that cannot be predicted from rigid
+   partners) and at least every `max_skip_frames` frames; otherwise it is skipped.
+3. Re-acquisition: every occluded marker is predicted, from its *rigid partners* when three of them are
+   labeled now (Kabsch on the partners' positions when the marker was last seen, i.e. a rigid-body fill;
+   the most accurate prediction there is and free of calibration error), else from the fitted skeleton,
+   else by coasting. Remaining points are assigned to these predictions with the Hungarian method inside a
+   gate, so ghosts far from any prediction stay unlabeled.
+4. Checks: a refining fit, and any label the fitted model (or the marker's partners) disagrees with by more
+   than `reject_residual_m` is withdrawn: a wrong label costs more than a missing one.
+
+Rigid partners are learned online: running statistics of every pairwise marker distance (only over
+labeled frames) rank, for each marker, the partners whose distance varies least.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from service.config import EngineConfig
+
+N_PARTNERS = 8
+MAX_SPEED_M_S = 15.0  # markers never move faster; caps velocities estimated from bad predictions
+_BIG = 1e9
+
+
+@dataclasses.dataclass(frozen=True)
+class SubjectModel:
+    """A subject's calibration: its markers and, when known, its skeleton."""
+
+    name: str
+    markers: tuple[str, ...]
+    marker_segment: np.ndarray  # (M,) int, segment index of each marker (-1 until the skeleton is calibrated)
+    marker_offsets_m: np.ndarray  # (M, 3) offset in the segment frame
+    joint_offsets_m: np.ndarray  # (14, 3) segment origin in the parent frame
+    has_skeleton: bool = False
+
+    @property
+    def n_markers(self) -> int:
+        return len(self.markers)
+
+
+@dataclasses.dataclass
+class TrackState:
+    """Everything that changes frame to frame for one subject (owned by the engine's registry)."""
+
+    pos_m: np.ndarray  # (M, 3) last observed or predicted position
+    vel_m_s: np.ndarray  # (M, 3)
+    labeled: np.ndarray  # (M,) bool, labeled in the last processed frame
+    ever_seen: np.ndarray  # (M,) bool
+    last_t_ns: int
+    # rigid-partner memory
+    dist_n: np.ndarray  # (M, M) samples in the running distance statistics
+    dist_mean_m: np.ndarray  # (M, M)
+    dist_var_m2: np.ndarray  # (M, M)
+    partners: np.ndarray  # (M, K) int, -1 = none
+    snap_m: np.ndarray  # (M, M, 3): row i = every marker's position when i was last labeled (NaN = unlabeled then)
+    # skeleton
+    t_root_m: np.ndarray  # (3,)
+    R_parent_segment: np.ndarray  # (14, 3, 3)
+    skipped: int = 0  # solves skipped in a row
+    frames: int = 0
+    last_labeled_t_ns: int = 0
+    fit_rms_m: float = float("nan")
+
+
+@dataclasses.dataclass(frozen=True)
+class StepResult:
+    point_index: np.ndarray  # (M,) int32, -1 = not observed
+    predicted_m: np.ndarray  # (M, 3)
+    solved: bool
+    iterations: int
+    residual_m: float
+
+
+def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m: np.ndarray | None = None) -> TrackState:
+    """Start tracking from known marker positions (M, 3; NaN = unseen), with optional labeled history
+    (F, M, 3) to seed the rigid-partner statistics."""
+    m = model.n_markers
+    seen = np.isfinite(positions_m[:, 0])
+    st = TrackState(
+        pos_m=np.where(seen[:, None], positions_m, 0.0),
+        vel_m_s=np.zeros((m, 3)),
+        labeled=seen.copy(),
+        ever_seen=seen.copy(),
+        last_t_ns=t_ns,
+        dist_n=np.zeros((m, m)),
+        dist_mean_m=np.zeros((m, m)),
+        dist_var_m2=np.zeros((m, m)),
+        partners=np.full((m, N_PARTNERS), -1),
+        snap_m=np.full((m, m, 3), np.nan),
+        t_root_m=np.zeros(3),
+        R_parent_segment=np.tile(np.eye(3), (14, 1, 1)),
+        last_labeled_t_ns=t_ns,
+    )
+    if history_m is not None:
+        for frame in history_m:
+            _update_distances(st, frame, np.isfinite(frame[:, 0]), alpha_min=0.0)
+        if len(history_m) >= 2:
+            last_two = history_m[-2:]
+            ok = np.all(np.isfinite(last_two[:, :, 0]), axis=0)
+            st.vel_m_s[ok] = 0.0  # a seed's frame time is not known here; start from rest
+    _update_partners(st)
+    _snapshot(st, st.pos_m, seen)
+    return st
+
+
+def _update_distances(st: TrackState, pos: np.ndarray, labeled: np.ndarray, alpha_min: float = 0.002) -> None:
+    """Running mean/variance of pairwise distances among labeled markers (count-based, then EMA)."""
+    idx = np.flatnonzero(labeled)
+    if len(idx) < 2:
+        return
+    p = pos[idx]
+    d = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
+    ix = np.ix_(idx, idx)
+    n = st.dist_n[ix] + 1.0
+    alpha = np.maximum(1.0 / n, alpha_min)
+    mean = st.dist_mean_m[ix]
+    delta = d - mean
+    mean = mean + alpha * delta
+    st.dist_var_m2[ix] = (1 - alpha) * (st.dist_var_m2[ix] + alpha * delta * delta)
+    st.dist_mean_m[ix] = mean
+    st.dist_n[ix] = n
+
+
+def _update_partners(st: TrackState) -> None:
+    """For every marker, the K partners whose distance to it varies least (ties broken by nearness)."""
+    m = len(st.pos_m)
+    score = np.sqrt(st.dist_var_m2) + 0.02 * st.dist_mean_m
+    score = np.where(st.dist_n >= 3, score, _BIG)
+    np.fill_diagonal(score, _BIG)
+    k = min(N_PARTNERS, m - 1)
+    order = np.argsort(score, axis=1)[:, :k]
+    ok = np.take_along_axis(score, order, axis=1) < _BIG
+    partners = np.full((m, N_PARTNERS), -1)
+    partners[:, :k] = np.where(ok, order, -1)
+    st.partners = partners
+
+
+def _snapshot(st: TrackState, pos: np.ndarray, labeled: np.ndarray) -> None:
+    """Remember, for each labeled marker, where every labeled marker is now. Keeping all of them (not only
+    the current partners) lets the partner lists change while a marker is hidden."""
+    idx = np.flatnonzero(labeled)
+    if len(idx) == 0:
+        return
+    st.snap_m[idx] = np.where(labeled[:, None], pos, np.nan)[None]
+
+
+def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, which: np.ndarray):
+    """Predict markers `which` from their rigid partners labeled now (`pos`, NaN elsewhere).
+
+    For each marker, the partners' positions when it was last seen are carried onto their positions now by
+    the best rigid transform (Kabsch, batched over markers with a partner mask), and so is the marker.
+    Returns (pred (M, 3), spread (M,) = RMS misfit of the partners [m]); NaN where fewer than 3 usable
+    partners. Hand-written and batched: one (M, 3, 3) SVD is ~20x faster than a loop of small ones.
+    """
+    m = len(pos)
+    pred = np.full((m, 3), np.nan)
+    spread = np.full(m, np.nan)
+    rows = np.flatnonzero(which)
+    if len(rows) == 0:
+        return pred, spread
+    part = st.partners[rows]  # (R, K)
+    pk = np.maximum(part, 0)
+    src = st.snap_m[rows[:, None], pk]  # (R, K, 3) partner positions when marker was last seen
+    self_src = st.snap_m[rows, rows]  # (R, 3)
+    dst = pos[pk]  # (R, K, 3)
+    w = (part >= 0) & labeled[pk] & np.isfinite(src[..., 0]) & np.isfinite(self_src[:, :1])
+    n = w.sum(1)
+    ok = n >= 3
+    if not ok.any():
+        return pred, spread
+    rows, part, src, dst, w, self_src, n = rows[ok], pk[ok], src[ok], dst[ok], w[ok], self_src[ok], n[ok]
+    # partners weighted by how rigidly they keep their distance to the marker (sigma + 3 mm of skin)
+    sigma = np.sqrt(st.dist_var_m2[rows[:, None], part])
+    wf = (w / (sigma + 0.003) ** 2)[..., None]
+    wsum = wf.sum(1)
+    src, dst = np.where(w[..., None], src, 0.0), np.where(w[..., None], dst, 0.0)
+    cs = (src * wf).sum(1) / wsum
+    cd = (dst * wf).sum(1) / wsum
+    a, b = (src - cs[:, None]) * w[..., None], (dst - cd[:, None]) * wf
+    H = np.einsum("rki,rkj->rij", a, b)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.einsum("rji,rkj->rik", Vt, U)))
+    D = np.ones((len(rows), 3))
+    D[:, 2] = np.where(d == 0, 1.0, d)
+    R = np.einsum("rji,rj,rkj->rik", Vt, D, U)  # V diag(D) U^T
+    fitted = np.einsum("rij,rkj->rki", R, a) + cd[:, None]
+    res = np.where(w, np.sum((fitted - dst) ** 2, axis=2), 0.0) * wf[..., 0]
+    spread[rows] = np.sqrt(res.sum(1) / wsum[:, 0])
+    pred[rows] = np.einsum("rij,rj->ri", R, self_src - cs) + cd
+    return pred, spread
+
+
+def _unswap(point_index: np.ndarray, cur: np.ndarray, rpred: np.ndarray, err: np.ndarray, tol_m: float) -> None:
+    """Swap the labels of two markers when each sits where the other's rigid partners expect it (markers
+    that passed close to each other and were tracked through crossed). In place."""
+    suspects = np.flatnonzero(err > tol_m)
+    if len(suspects) < 2:
+        return
+    for a_i, i in enumerate(suspects):
+        for k in suspects[a_i + 1 :]:
+            if point_index[i] < 0 or point_index[k] < 0:
+                continue
+            crossed = np.linalg.norm(cur[k] - rpred[i]) + np.linalg.norm(cur[i] - rpred[k])
+            if crossed < 0.5 * (err[i] + err[k]):
+                point_index[i], point_index[k] = point_index[k], point_index[i]
+                cur[[i, k]] = cur[[k, i]]
+                err[i] = err[k] = 0.0
+
+
+def _assign(pred: np.ndarray, gates: np.ndarray, points: np.ndarray, cand: np.ndarray):
+    """Hungarian assignment of markers (rows of pred, gated) to candidate points. Returns (rows, point_idx)."""
+    rows = np.flatnonzero(np.isfinite(pred[:, 0]) & (gates > 0))
+    cols = np.flatnonzero(cand)
+    if len(rows) == 0 or len(cols) == 0:
+        return np.empty(0, int), np.empty(0, int)
+    d2 = np.sum((pred[rows, None, :] - points[None, cols, :]) ** 2, axis=2)
+    g2 = gates[rows, None] ** 2
+    # Quick reject of rows/cols with nothing in range keeps the Hungarian problem small.
+    ok = d2 < g2
+    r_any, c_any = ok.any(1), ok.any(0)
+    if not r_any.any():
+        return np.empty(0, int), np.empty(0, int)
+    rows, cols, d2, g2, ok = rows[r_any], cols[c_any], d2[r_any][:, c_any], g2[r_any], ok[r_any][:, c_any]
+    cost = np.where(ok, d2 / g2, _BIG)
+    r, c = linear_sum_assignment(cost)
+    keep = cost[r, c] < _BIG
+    return rows[r[keep]], cols[c[keep]]
+
+
+def step(
+    model: SubjectModel,
+    st: TrackState,
+    points: np.ndarray,
+    free: np.ndarray,
+    t_ns: int,
+    config: EngineConfig,
+    solver=None,
+) -> tuple[TrackState, StepResult]:
+    """Label one frame for one subject. `points` (N, 3) finite; `free` (N,) marks points no other subject
+    claimed. Mutates and returns `st` (the registry owns it; callers never share a state)."""
+    m = model.n_markers
+    dt = float(np.clip((t_ns - st.last_t_ns) * 1e-9, 1e-4, 0.5)) if st.frames or st.last_t_ns else 1.0 / 120
+    point_index = np.full(m, -1)
+    taken = ~free.copy()
+
+    # 1. NNT: constant-velocity prediction of markers labeled last frame.
+    pred_track = st.pos_m + st.vel_m_s * dt
+    speed = np.linalg.norm(st.vel_m_s, axis=1)
+    gates = np.where(st.labeled, config.nnt_gate_m + 0.35 * speed * dt, 0.0)
+    rows, cols = _assign(pred_track, gates, points, ~taken)
+    point_index[rows] = cols
+    taken[cols] = True
+
+    labeled = point_index >= 0
+    cur = np.where(labeled[:, None], points[np.maximum(point_index, 0)], np.nan)
+
+    # 2. Predict every marker from its rigid partners; a tracked label its partners disagree with (a swap
+    #    of two close markers, a ghost caught while the marker hid) is withdrawn and re-assigned below.
+    rpred, spread = rigid_predictions(st, cur, labeled, st.ever_seen)
+    has_rigid = np.isfinite(rpred[:, 0])
+    err = np.where(labeled & has_rigid, np.linalg.norm(np.nan_to_num(cur - rpred), axis=1), 0.0)
+    _unswap(point_index, cur, rpred, err, config.rigid_check_m)
+    labeled = point_index >= 0
+    err = np.where(labeled & has_rigid, np.linalg.norm(np.nan_to_num(cur - rpred), axis=1), 0.0)
+    tol = config.rigid_check_m + 4.0 * np.nan_to_num(spread)
+    bad = labeled & has_rigid & (err > tol)
+    if bad.any():
+        taken[point_index[bad]] = False
+        point_index[bad] = -1
+        labeled = point_index >= 0
+        cur[bad] = np.nan
+    missing = ~labeled & st.ever_seen
+
+    # 3. Skeleton fit, when something is unexplained or the skip budget is spent.
+    solved, iterations, residual = False, 0, float("nan")
+    skel_pred = None
+    if model.has_skeleton and solver is not None:
+        near = _near_subject(points, cur[labeled], ~taken)
+        unexplained = bool(near.any()) or bool((missing & ~has_rigid).any())
+        if unexplained or st.skipped >= config.max_skip_frames:
+            fit = _fit(model, st, solver, cur, labeled)
+            if fit is not None:
+                solved, iterations, residual = True, fit.iterations, fit.residual_rms_m
+                skel_pred = fit.predicted_m
+            st.skipped = 0
+        else:
+            st.skipped += 1
+
+    # 4. Re-acquire occluded markers (Hungarian on predictions, gated).
+    coast = st.pos_m + st.vel_m_s * dt * 0.5
+    pred_missing = np.where(has_rigid[:, None], rpred, np.nan)
+    gate_missing = np.where(has_rigid, config.reacquire_gate_m * 0.8 + 3.0 * np.nan_to_num(spread), 0.0)
+    if skel_pred is not None:
+        use_skel = missing & ~has_rigid
+        pred_missing[use_skel] = skel_pred[use_skel]
+        gate_missing[use_skel] = config.reacquire_gate_m
+    gate_missing = np.where(missing, gate_missing, 0.0)
+    rows, cols = _assign(pred_missing, gate_missing, points, ~taken)
+    if len(rows):
+        point_index[rows] = cols
+        taken[cols] = True
+        labeled = point_index >= 0
+        cur = np.where(labeled[:, None], points[np.maximum(point_index, 0)], np.nan)
+
+    # 5. Refine and reject labels the model disagrees with.
+    if solved and len(rows):
+        fit = _fit(model, st, solver, cur, labeled)
+        if fit is not None:
+            iterations += fit.iterations
+            residual = fit.residual_rms_m
+            skel_pred = fit.predicted_m
+    if skel_pred is not None and residual < 0.5 * config.reject_residual_m:
+        # the model's word counts only where no rigid partners can speak for a marker
+        err = np.linalg.norm(np.where(labeled[:, None], cur - skel_pred, 0.0), axis=1)
+        bad = labeled & ~has_rigid & (err > config.reject_residual_m)
+        if bad.any():
+            point_index[bad] = -1
+            labeled = point_index >= 0
+            cur[bad] = np.nan
+
+    # 6. Update the state.
+    fallback = np.where(has_rigid[:, None], rpred, coast)
+    if skel_pred is not None:
+        fallback = np.where((~has_rigid)[:, None], skel_pred, fallback)
+    _commit(st, cur, labeled, fallback, t_ns, dt)
+    predicted = st.pos_m.copy()
+    if skel_pred is not None:
+        predicted = np.where(labeled[:, None], skel_pred, predicted)
+    return st, StepResult(
+        point_index=point_index.astype(np.int32),
+        predicted_m=predicted,
+        solved=solved,
+        iterations=iterations,
+        residual_m=residual,
+    )
+
+
+def observe(
+    model: SubjectModel, st: TrackState, cur: np.ndarray, t_ns: int, config: EngineConfig, solver=None
+) -> tuple[TrackState, StepResult]:
+    """Take given labels as truth (a capture system's own labels, an operator's corrections): `cur` (M, 3)
+    holds the labeled positions, NaN where a marker has no label. Keeps every statistic `step` keeps."""
+    dt = float(np.clip((t_ns - st.last_t_ns) * 1e-9, 1e-4, 0.5))
+    labeled = np.isfinite(cur[:, 0])
+    missing = ~labeled & st.ever_seen
+    rpred, _ = rigid_predictions(st, cur, labeled, missing)
+    fallback = np.where(np.isfinite(rpred[:, :1]), rpred, st.pos_m)
+    solved, iterations, residual = False, 0, float("nan")
+    if model.has_skeleton and solver is not None and st.skipped >= min(config.max_skip_frames, 2):
+        fit = _fit(model, st, solver, cur, labeled)
+        st.skipped = 0
+        if fit is not None:
+            solved, iterations, residual = True, fit.iterations, fit.residual_rms_m
+            fallback = np.where(np.isfinite(rpred[:, :1]), rpred, fit.predicted_m)
+    else:
+        st.skipped += 1
+    _commit(st, cur, labeled, fallback, t_ns, dt)
+    return st, StepResult(np.full(model.n_markers, -1, np.int32), st.pos_m.copy(), solved, iterations, residual)
+
+
+def _commit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, fallback: np.ndarray, t_ns: int, dt: float) -> None:
+    """Fold one frame's labels into the state: positions, velocities, partner statistics, snapshots."""
+    both = labeled & st.labeled
+    # velocity of a re-acquired marker: from its last prediction, which followed its partners' motion
+    new_vel = np.where(labeled[:, None], (cur - st.pos_m) / dt, st.vel_m_s * 0.8)
+    speed = np.linalg.norm(new_vel, axis=1, keepdims=True)
+    new_vel *= np.minimum(1.0, MAX_SPEED_M_S / np.maximum(speed, 1e-9))
+    # light smoothing against noise, not so much that fast markers lag
+    st.vel_m_s = np.where(both[:, None], 0.7 * new_vel + 0.3 * st.vel_m_s, new_vel)
+    st.pos_m = np.where(labeled[:, None], cur, fallback)
+    st.labeled = labeled
+    st.ever_seen |= labeled
+    st.last_t_ns = t_ns
+    st.frames += 1
+    if labeled.any():
+        st.last_labeled_t_ns = t_ns
+    _update_distances(st, cur, labeled)
+    if st.frames % 30 == 0:
+        _update_partners(st)
+    _snapshot(st, cur, labeled)
+
+
+def _near_subject(points: np.ndarray, labeled_pos: np.ndarray, cand: np.ndarray, radius_m: float = 0.25) -> np.ndarray:
+    """Unclaimed points within radius of the subject's labeled markers (unexplained evidence)."""
+    out = np.zeros(len(points), bool)
+    idx = np.flatnonzero(cand)
+    if len(idx) == 0 or len(labeled_pos) == 0:
+        return out
+    d2 = np.min(np.sum((points[idx, None, :] - labeled_pos[None]) ** 2, axis=2), axis=1)
+    out[idx] = d2 < radius_m**2
+    return out
+
+
+def _fit(model: SubjectModel, st: TrackState, solver, cur: np.ndarray, labeled: np.ndarray):
+    """One Gauss-Newton solve from the current pose; on failure keep the pose (never freeze or explode)."""
+    if labeled.sum() < 4:
+        return None
+    fit = solver.fit(
+        st.t_root_m, st.R_parent_segment, model.joint_offsets_m, model.marker_segment, model.marker_offsets_m, cur, labeled
+    )
+    if not fit.ok or not np.isfinite(fit.residual_rms_m):
+        return None
+    st.t_root_m = fit.t_world_root_m
+    st.R_parent_segment = fit.R_parent_segment
+    st.fit_rms_m = fit.residual_rms_m
+    return fit
