@@ -43,7 +43,7 @@ import numpy as np
 
 from benchmarks.nnt import NearestNeighbourTracker
 from benchmarks.score import Score, plot_errors, score
-from recordings.corruption import LEVELS, CorruptedSequence, corrupt
+from recordings.corruption import LEVELS, SEED_S, CorruptedSequence, corrupt
 from recordings.recording import Recording, is_marker_label
 
 REPO = Path(__file__).resolve().parents[1]
@@ -82,6 +82,7 @@ class Job:
 class JobResult:
     job: Job
     n_frames: int
+    rate_hz: float
     score: Score
     step_s: np.ndarray  # (frames answered,) wall time of each step call [s]
     solved_fraction: float  # engine: frames where some subject ran the solve / frames answered (NaN for NNT)
@@ -187,6 +188,7 @@ def run_job(data_dir: str, job: Job) -> JobResult:
     return JobResult(
         job=job,
         n_frames=seq.n_frames,
+        rate_hz=seq.rate_hz,
         score=score(seq, given, job.mode, first),
         step_s=times.astype(np.float32),
         solved_fraction=solved[0] / solved[1] if solved[1] else float("nan"),
@@ -224,19 +226,24 @@ def run_jobs(data_dir: Path, jobs: list[Job], workers: int, cache_dir: str) -> l
     return results
 
 
-def plan(data_dir: Path, files: list[str], levels: list[str], max_s: float | None) -> list[Job]:
-    jobs = []
+def plan(data_dir: Path, files: list[str], levels: list[str], max_s: float | None) -> tuple[list[Job], list[str]]:
+    """The jobs, and notes on what was left out and why."""
+    jobs, notes = [], []
     for file in files:
-        rate_hz = load(str(data_dir), file, None).rate_hz
-        max_frames = int(round(max_s * rate_hz)) if max_s else None
-        modes = ["seeded"] + (["tpose"] if file in TPOSE_FILES else [])
+        rec = load(str(data_dir), file, None)
+        max_frames = int(round(max_s * rec.rate_hz)) if max_s else None
+        modes = ["tpose"] if file in TPOSE_FILES else []
+        if min(rec.n_frames, max_frames or rec.n_frames) > round(SEED_S * rec.rate_hz) + rec.rate_hz:
+            modes.insert(0, "seeded")
+        else:  # nothing (or under a second) would be left to score after the 2 s seed
+            notes.append(f"{file} ({rec.n_frames / rec.rate_hz:.1f} s) is too short for seeded mode (2 s seed + 1 s)")
         for level in levels:
             for mode in modes:
                 for variant in VARIANTS:
                     if mode == "tpose" and variant not in ENGINE_VARIANTS:
                         continue
                     jobs.append(Job(file, level, mode, variant, max_frames))
-    return jobs
+    return jobs, notes
 
 
 # ----------------------------------------------------------------------------------------------- report
@@ -316,14 +323,14 @@ def summary_table(results: list[JobResult], levels: list[str]) -> list[str]:
         cells = []
         for v in VARIANTS:
             acc = [r.score.accuracy for r in results if r.job.level == level and r.job.variant == v
-                   and r.job.mode == "seeded" and not r.error]
+                   and r.job.mode == "seeded" and not r.error and r.score.n_true_points]
             cells.append(_pct(float(np.mean(acc))) if acc else "")
         lines.append(f"| {level} | " + " | ".join(cells) + " |")
     return lines
 
 
 def worst_runs(results: list[JobResult], n: int = 12) -> list[JobResult]:
-    engine = [r for r in results if r.job.variant == "adaptive" and not r.error]
+    engine = [r for r in results if r.job.variant == "adaptive" and not r.error and r.score.accuracy < 1]
     return sorted(engine, key=lambda r: r.score.accuracy)[:n]
 
 
@@ -342,7 +349,7 @@ def save_plots(results: list[JobResult]) -> list[Path]:
         name = f"{Path(r.job.file).stem}_{r.job.level}_{r.job.mode}_{r.job.variant}.png"
         path = OUT_DIR / name
         plot_errors(r.score, path, title=f"{r.job.file} {r.job.level} {r.job.mode} {r.job.variant}",
-                    rate_hz=None)
+                    rate_hz=r.rate_hz)
         paths.append(path)
     return paths
 
@@ -364,13 +371,14 @@ def in_process_speed(results: list[JobResult]) -> dict[str, dict]:
             "fps": float(len(steps) / steps.sum()),
             "l2_mean_ms": float(1e3 * l2s.mean()) if len(l2s) else float("nan"),
             "l2_p99_ms": float(1e3 * np.percentile(l2s, 99)) if len(l2s) else float("nan"),
-            "solved_fraction": float(np.nanmean([r.solved_fraction for r in runs])),
+            "solved_fraction": float(np.mean([r.solved_fraction for r in runs])) if v in ENGINE_VARIANTS else float("nan"),
             "peak_rss_mb": float(max(r.peak_rss_mb for r in runs)),
         }
     return out
 
 
-def write_report(path: Path, args, meta: dict, files, levels, results, speed_inproc, speed, plots, wall_s) -> None:
+def write_report(path: Path, args, meta: dict, files, levels, results, notes, speed_inproc, speed, plots,
+                 wall_s) -> None:
     lines = [
         "# Benchmark",
         "",
@@ -396,6 +404,7 @@ def write_report(path: Path, args, meta: dict, files, levels, results, speed_inp
         *summary_table(results, levels),
         "",
     ]
+    lines += [f"- {note}" for note in notes] + ([""] if notes else [])
     failed = [r for r in results if r.error]
     if failed:
         lines += ["Failed runs:", ""] + [f"- {r.job}: {r.error}" for r in failed] + [""]
@@ -478,8 +487,9 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     meta = {"date": datetime.datetime.now().strftime("%Y-%m-%d %H:%M"), **machine()}
     print(f"benchmark: {len(files)} files x {len(levels)} levels, {meta['cpu']}", file=sys.stderr)
-    jobs = plan(args.data, files, levels, args.max_seconds or None)
+    jobs, notes = plan(args.data, files, levels, args.max_seconds or None)
     results = run_jobs(args.data, jobs, args.workers, cache_dir)
+    print(f"benchmark: accuracy runs done in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
     speed_inproc = in_process_speed(results)
     plots = save_plots(results)
     speed: dict = {}
@@ -487,7 +497,7 @@ def main(argv: list[str] | None = None) -> int:
         from benchmarks import speed as speed_mod
 
         speed = speed_mod.measure(args.data, quick=args.quick, cache_dir=cache_dir)
-    write_report(args.output, args, meta, files, levels, results, speed_inproc, speed, plots,
+    write_report(args.output, args, meta, files, levels, results, notes, speed_inproc, speed, plots,
                  time.perf_counter() - t0)
     print(f"benchmark: wrote {args.output} in {(time.perf_counter() - t0) / 60:.1f} min", file=sys.stderr)
     return 0

@@ -85,19 +85,28 @@ class Children:
 
     @staticmethod
     def stop(proc: subprocess.Popen, grace_s: float = 30.0) -> int:
-        """SIGINT (every project process stops cleanly on it), SIGKILL if it has not exited after grace_s."""
+        """SIGINT (every project process stops cleanly on it), SIGKILL if it has not exited after grace_s.
+
+        A Ctrl-C during the wait is ignored: stopping the children must finish.
+        """
         if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
+            previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
             try:
-                proc.wait(grace_s)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+                proc.send_signal(signal.SIGINT)
+                try:
+                    proc.wait(grace_s)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+            finally:
+                signal.signal(signal.SIGINT, previous)
         return proc.returncode
 
     def stop_all(self) -> None:
         for _, proc in reversed(self.procs):
             self.stop(proc)
+            if proc.stdout and not proc.stdout.closed:  # stderr pipes are closed by their reader thread
+                proc.stdout.close()
 
     def __enter__(self) -> Children:
         return self
@@ -158,7 +167,7 @@ def start_recorder(children: Children, eps: Endpoints, base: Path, log_path: Pat
     receiving = threading.Event()
 
     def copy():
-        with open(log_path, "w") as log:
+        with proc.stderr, open(log_path, "w") as log:
             for line in proc.stderr:
                 log.write(line)
                 log.flush()
@@ -177,7 +186,8 @@ def finish_recorder(proc: subprocess.Popen, settle_s: float = 1.0) -> str:
     """Let the last results arrive, stop the recorder (it writes its files on SIGINT), return its stdout."""
     time.sleep(settle_s)
     Children.stop(proc, grace_s=120.0)
-    out = proc.stdout.read() if proc.stdout else ""
+    with proc.stdout:
+        out = proc.stdout.read()
     if proc.returncode not in (0, 1):  # 1: no result arrived, nothing written (scored as all unlabeled)
         raise DemoError(f"the recorder exited with status {proc.returncode}: {out.strip()}")
     return out
@@ -253,6 +263,10 @@ def run_session(children: Children, eps: Endpoints, out_dir: Path, name: str, *,
                    outputs, seq.rate_hz)
 
 
+def _pct(x: float) -> str:
+    return "n/a" if np.isnan(x) else f"{x:.1%}"
+
+
 def report(session: Session, rate_hz: float) -> str:
     s = session.score
     lines = []
@@ -261,8 +275,8 @@ def report(session: Session, rate_hz: float) -> str:
                      f"{session.first_labeled_frame} ({session.first_labeled_frame / rate_hz:.2f} s)")
     else:
         lines.append("  no subject was found: nothing was labeled")
-    lines.append(f"  accuracy {s.accuracy:.1%}   precision {s.precision:.1%}   ghost false-label rate "
-                 f"{s.ghost_rate:.1%}   ({s.n_true_points} marker points scored from frame "
+    lines.append(f"  accuracy {_pct(s.accuracy)}   precision {_pct(s.precision)}   ghost false-label rate "
+                 f"{_pct(s.ghost_rate)}   ({s.n_true_points} marker points scored from frame "
                  f"{s.first_scored_frame}, mode {session.mode})")
     lat = session.latency_ms
     if len(lat):
@@ -295,7 +309,8 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as e:
         print(f"demo: cannot create the output directory {out_dir}: {e.strerror}", file=sys.stderr)
         return 2
-    signal.signal(signal.SIGTERM, _raise_interrupt)
+    for signum in (signal.SIGINT, signal.SIGTERM):  # explicit: we may have been started with SIGINT ignored
+        signal.signal(signum, _raise_interrupt)
     print(f"demo: synthetic performer (seed {args.seed}), {args.duration:g} s, corruption {args.level}; "
           f"outputs in {out_dir}", flush=True)
     try:

@@ -121,15 +121,29 @@ class Recorder:
         return [name for name, log in self.subjects.items() if log.skeleton is None]
 
     def rate_hz(self) -> float | None:
-        """Capture rate from t_ns: the median of (frame step / time step) over consecutive labels rows."""
-        ratios = []
+        """Capture rate from t_ns [Hz], rounded to 1 mHz.
+
+        The median of (frame step / time step) over consecutive labels rows is robust to restarts and
+        gaps; when the whole span agrees with it within 1 %, the span (frames / seconds, first to last) is
+        used instead: send-time stamps jitter per frame, but not over the span.
+        """
+        ratios, spans = [], []
         for log in self.subjects.values():
             frames, t_ns = np.array(log.frames), np.array(log.t_ns, dtype=np.int64)
             order = np.argsort(frames, kind="stable")
-            df, dt = np.diff(frames[order]), np.diff(t_ns[order])
+            frames, t_ns = frames[order], t_ns[order]
+            df, dt = np.diff(frames), np.diff(t_ns)
             ok = (df > 0) & (dt > 0)
             ratios.extend(df[ok] * 1e9 / dt[ok])
-        return float(np.median(ratios)) if ratios else None
+            if len(frames) > 1 and t_ns[-1] > t_ns[0]:
+                spans.append((frames[-1] - frames[0]) * 1e9 / (t_ns[-1] - t_ns[0]))
+        if not ratios:
+            return None
+        rate = float(np.median(ratios))
+        agreeing = [s for s in spans if abs(s - rate) <= 0.01 * rate]
+        if agreeing:
+            rate = float(np.median(agreeing))
+        return round(rate, 3)
 
     # ------------------------------------------------------------------------------------------ output
 

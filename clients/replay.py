@@ -401,7 +401,9 @@ def main(argv: list[str] | None = None) -> int:
     plan = Plan(seq=seq, rate_hz=seq.rate_hz, speed=args.speed, labeled_frames=labeled, loop=args.loop,
                 stream=args.stream, stamp_send_time=args.stamp_send_time)
 
-    signal.signal(signal.SIGTERM, _raise_interrupt)  # SIGTERM stops as cleanly as Ctrl-C
+    # Ctrl-C and SIGTERM stop cleanly (explicit: a launcher may have started us with SIGINT ignored).
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, _raise_interrupt)
     context = zmq.Context()
     sock = context.socket(zmq.XPUB)
     sock.setsockopt(zmq.LINGER, LINGER_MS)
@@ -432,8 +434,10 @@ def main(argv: list[str] | None = None) -> int:
         stats = getattr(e, "stats", stats)
         interrupted = True
     finally:
-        sock.close()  # lingers up to LINGER_MS so the last queued frames still reach the daemon
-        context.term()
+        for signum in (signal.SIGINT, signal.SIGTERM):  # a second Ctrl-C must not abandon the clean-up
+            signal.signal(signum, signal.SIG_IGN)
+        # On a normal end, linger up to LINGER_MS so the last queued frames still reach the daemon.
+        context.destroy(linger=0 if interrupted else LINGER_MS)
     print(f"mocap-replay: {stats.summary()}" + (" (interrupted)" if interrupted else ""))
     if args.truth_out:
         save_truth(args.truth_out, plan, stats)

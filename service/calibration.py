@@ -174,7 +174,7 @@ def is_tpose(P: np.ndarray) -> bool:
     return bool(arms_level and both)
 
 
-def clusters(points: np.ndarray, radius_m: float = 0.3, min_points: int = 15) -> list[np.ndarray]:
+def clusters(points: np.ndarray, radius_m: float = 0.5, min_points: int = 15) -> list[np.ndarray]:
     """Groups of points linked by chains of neighbours closer than radius_m (one group per person)."""
     if len(points) < min_points:
         return []

@@ -51,6 +51,7 @@ def _parser() -> argparse.ArgumentParser:
     label.add_argument("--max-skip-frames", metavar="K", type=int,
                        help="frames the skeleton solve may be skipped in a row (0 = solve every frame)")
     label.add_argument("--config", metavar="FILE", help="TOML configuration file")
+    label.add_argument("--cache-dir", metavar="DIR", help='JAX compilation cache ("" disables it)')
     label.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     label.add_argument("--log-level", default="WARNING", type=str.upper, choices=LOG_LEVELS)
     return parser
@@ -75,9 +76,8 @@ def _serve(args) -> int:
 
 def _label(args) -> int:
     from recordings.c3d import C3DError, read_c3d, write_c3d
-    from service.offline import label_recording
 
-    config = load_config(args.config, engine_max_skip_frames=args.max_skip_frames)
+    config = load_config(args.config, cache_dir=args.cache_dir, engine_max_skip_frames=args.max_skip_frames)
     if args.seed_frames < 0:
         raise UsageError(f"mocap-service: --seed-frames must be >= 0, got {args.seed_frames}")
     out_dir = Path(args.output).expanduser().resolve().parent
@@ -89,7 +89,8 @@ def _label(args) -> int:
         raise UsageError(f"mocap-service: {e}") from None
     except OSError as e:
         raise UsageError(f"mocap-service: cannot read {args.input}: {e.strerror or e}") from None
-    from service.daemon import enable_compilation_cache
+    from service.daemon import enable_compilation_cache  # imported late: jax costs seconds, errors do not
+    from service.offline import label_recording
 
     enable_compilation_cache(config.cache_dir)
     points_m, labels = label_recording(recording, config, seed_frames=args.seed_frames,

@@ -40,7 +40,7 @@ class EngineConfig:
     """Relative tolerance of the Gauss-Newton solve."""
     tpose_auto: bool = True
     """Detect people standing in a T-pose in unlabeled points and create subjects from them."""
-    tpose_window_frames: int = 24
+    tpose_window_frames: int = 60
     """Frames a T-pose candidate must hold still before a subject is created from it."""
     max_points: int = 4096
     """Frames with more points are rejected as malformed (a capture volume never sees that many)."""

@@ -46,6 +46,12 @@ LATENCY_WINDOW = 1024
 #: Consecutive frames numbered below the last one after which a stream is taken to have restarted (a
 #: replay looping, a capture system restarted) rather than delivering stale frames.
 RESTART_AFTER_FRAMES = 8
+#: Frames of one stream found waiting that are still all processed, in order. Measured at 120 Hz with
+#: the synthetic performer on the 2-core machine: a step takes ~2.5 ms, but the occasional (re)calibration
+#: takes ~20 ms, leaving 2-3 frames waiting; dropping them cost 0.7 % of frames unanswered, processing them
+#: costs those few frames ~10 ms of extra latency. Beyond this backlog the daemon is really behind and
+#: skips to the newest frame, so latency stays bounded.
+MAX_BACKLOG_FRAMES = 4
 #: Longest wait in the poller [s], so a stop request is seen promptly.
 POLL_MAX_S = 0.1
 
@@ -183,7 +189,7 @@ class Daemon:
             sock.bind(endpoint)
         except zmq.ZMQError as e:
             sock.close(0)
-            raise DaemonError(f"cannot bind the {name} endpoint {endpoint}: {e}") from None
+            raise DaemonError(f"cannot bind the {name} endpoint {endpoint}: {e.strerror}") from None
         self.endpoints[name] = sock.getsockopt_string(zmq.LAST_ENDPOINT)
         return sock
 
@@ -219,7 +225,8 @@ class Daemon:
 
     def _close(self) -> None:
         """Save calibrations, close every socket at once (linger 0) so the ports are free on return."""
-        if self.ready.is_set() and self._save_on_stop:
+        started = self.ready.is_set()
+        if started and self._save_on_stop:
             try:
                 saved = self._state_call("save")
                 log.info("saved %d subject calibration(s) to %s", len(saved), self._state_dir())
@@ -229,7 +236,8 @@ class Daemon:
         if self._ctx is not None:
             self._ctx.destroy(linger=0)
             self._ctx = None
-        log.info("stopped")
+        if started:
+            log.info("stopped")
 
     # -------------------------------------------------------------------------------------------- loop
 
@@ -255,8 +263,10 @@ class Daemon:
         self._pub.send_multipart(parts, copy=False)
 
     def _serve_frames(self) -> None:
-        """Drain the waiting frames; per stream process the newest, count the older ones as dropped."""
-        newest: dict[str, tuple[int, pm.Frame]] = {}
+        """Drain the waiting frames. Per stream, a short backlog (a slow frame, a scheduling hiccup) is
+        processed in order; a longer one means the daemon is behind: only the newest frame is processed
+        and the older ones are counted as dropped."""
+        waiting: dict[str, list[tuple[int, pm.Frame]]] = collections.defaultdict(list)
         for _ in range(max(1, self.config.max_queue_frames)):  # bounded, so requests are served between
             try:
                 parts = self._sub.recv_multipart(zmq.NOBLOCK)
@@ -265,13 +275,14 @@ class Daemon:
             received_ns = time.perf_counter_ns()
             self.frames_received += 1
             frame = self._accept(parts)
-            if frame is None:
-                continue
-            if frame.stream in newest:
-                self.frames_dropped += 1
-            newest[frame.stream] = (received_ns, frame)
-        for received_ns, frame in newest.values():
-            self._process(received_ns, frame)
+            if frame is not None:
+                waiting[frame.stream].append((received_ns, frame))
+        for frames in waiting.values():
+            if len(frames) > MAX_BACKLOG_FRAMES:
+                self.frames_dropped += len(frames) - 1
+                frames = frames[-1:]
+            for received_ns, frame in frames:
+                self._process(received_ns, frame)
 
     def _accept(self, parts: list[bytes]) -> pm.Frame | None:
         """Decode and order-check one frame message; None (counted under its reason) if rejected."""

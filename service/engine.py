@@ -309,7 +309,7 @@ class Engine:
             return created
         del self._candidates[key]
         W = cand.frames
-        keep = [t for t in cand.tracks if len(t) >= 0.5 * W]
+        keep = [t for t in cand.tracks if len(t) >= 0.4 * W]
         if len(keep) < 8 or len(keep) > self.config.max_markers:
             return created
         hist = np.full((W, len(keep), 3), np.nan)

@@ -103,12 +103,17 @@ def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m
     if history_m is not None:
         for frame in history_m:
             _update_distances(st, frame, np.isfinite(frame[:, 0]), alpha_min=0.0)
-        if len(history_m) >= 2:
-            last_two = history_m[-2:]
-            ok = np.all(np.isfinite(last_two[:, :, 0]), axis=0)
-            st.vel_m_s[ok] = 0.0  # a seed's frame time is not known here; start from rest
-    _update_partners(st)
-    _snapshot(st, st.pos_m, seen)
+        _update_partners(st)
+        # replay the history so every marker remembers where it and the others were when it was last seen
+        for frame in history_m:
+            ok = np.isfinite(frame[:, 0])
+            _snapshot(st, frame, ok)
+            st.pos_m[ok] = frame[ok]
+            st.ever_seen |= ok
+    else:
+        _update_partners(st)
+    _snapshot(st, np.where(seen[:, None], positions_m, np.nan), seen)
+    st.pos_m[seen] = positions_m[seen]
     return st
 
 
@@ -284,8 +289,9 @@ def step(
     solved, iterations, residual = False, 0, float("nan")
     skel_pred = None
     if model.has_skeleton and solver is not None:
-        near = _near_subject(points, cur[labeled], ~taken)
-        unexplained = bool(near.any()) or bool((missing & ~has_rigid).any())
+        # Unexplained = an occluded marker its rigid partners cannot place: only the skeleton can. (A
+        # ghost near the body is not: no fit explains it, and solving for every ghost costs 4x.)
+        unexplained = bool((missing & ~has_rigid).any())
         if unexplained or st.skipped >= config.max_skip_frames:
             fit = _fit(model, st, solver, cur, labeled)
             if fit is not None:
@@ -387,17 +393,6 @@ def _commit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, fallback: np.n
     if st.frames % 30 == 0:
         _update_partners(st)
     _snapshot(st, cur, labeled)
-
-
-def _near_subject(points: np.ndarray, labeled_pos: np.ndarray, cand: np.ndarray, radius_m: float = 0.25) -> np.ndarray:
-    """Unclaimed points within radius of the subject's labeled markers (unexplained evidence)."""
-    out = np.zeros(len(points), bool)
-    idx = np.flatnonzero(cand)
-    if len(idx) == 0 or len(labeled_pos) == 0:
-        return out
-    d2 = np.min(np.sum((points[idx, None, :] - labeled_pos[None]) ** 2, axis=2), axis=1)
-    out[idx] = d2 < radius_m**2
-    return out
 
 
 def _fit(model: SubjectModel, st: TrackState, solver, cur: np.ndarray, labeled: np.ndarray):

@@ -1,0 +1,426 @@
+"""Speed figures that need the real programs (EVALUATION.md "Speed"): `mocap-service label` throughput,
+daemon start-up (cold and warm compile cache), online latency through the daemon over loopback TCP, and
+how many subjects the daemon sustains at 120 Hz.
+
+Each measurement launches the program as a subprocess (`python -m service.cli ...`, exactly what the
+console script runs), on free loopback ports and a fresh state directory, and reads its peak resident
+memory from `os.wait4` when it exits. The client side speaks the wire contract through
+`protocol.messages`, as any third-party tool would. A measurement that fails is reported with its reason
+in the table instead of stopping the benchmark.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import zmq
+
+from protocol import messages as pm
+from recordings.corruption import corrupt
+from recordings.recording import is_marker_label, split_label
+
+REPO = Path(__file__).resolve().parents[1]
+THROUGHPUT_FILE = "hdm05/HDM_mm_01-02_03_120.c3d"  # whole recording, 3990 frames, seeded from 2 s
+QUICK_THROUGHPUT_FILE = "hdm05/HDM_dg_06-03_03_120.c3d"
+LATENCY_FILE = "cmu/135_02.c3d"  # one 41-marker subject, replayed at L2 at its own rate
+SCALE_FILE = "cmu/135_02.c3d"
+SCALE_RATE_HZ = 120.0
+SCALE_COUNTS = (1, 2, 3, 4, 6, 8)
+SCALE_SPACING_M = 4.0  # copies stand this far apart along x, so their clouds never mix
+SEED_S = 2.0
+START_TIMEOUT_S = 300.0
+STOP_TIMEOUT_S = 30.0
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _python_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env.pop("XLA_FLAGS", None)  # the programs run as a user runs them, with XLA's default threading
+    return env
+
+
+def _wait_rusage(proc: subprocess.Popen, timeout_s: float) -> tuple[int, float]:
+    """Wait for `proc` with os.wait4 (Popen.wait discards the child's rusage); (status, peak RSS MiB)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+        if pid:
+            proc.returncode = os.waitstatus_to_exitcode(status)
+            return proc.returncode, usage.ru_maxrss / 1024
+        if time.monotonic() > deadline:
+            proc.kill()
+            deadline = time.monotonic() + 10
+        time.sleep(0.02)
+
+
+class DaemonProcess:
+    """`mocap-service serve` on free loopback ports, with a client context; stopped by SIGTERM on exit."""
+
+    def __init__(self, cache_dir: str, max_skip_frames: int | None = None):
+        self.cache_dir = cache_dir
+        self.max_skip_frames = max_skip_frames
+        self.peak_rss_mb = float("nan")
+        self.exit_code: int | None = None
+
+    def __enter__(self) -> DaemonProcess:
+        ports = [_free_port() for _ in range(3)]
+        self.frames_ep, self.publish_ep, self.control_ep = (f"tcp://127.0.0.1:{p}" for p in ports)
+        self._state = tempfile.mkdtemp(prefix="mocap-bench-state-")
+        self._log = tempfile.TemporaryFile()
+        cmd = [sys.executable, "-m", "service.cli", "serve", "--frames", self.frames_ep, "--publish",
+               self.publish_ep, "--control", self.control_ep, "--state-dir", self._state, "--cache-dir",
+               self.cache_dir, "--log-level", "WARNING"]
+        if self.max_skip_frames is not None:
+            cmd += ["--max-skip-frames", str(self.max_skip_frames)]
+        self.ctx = zmq.Context()
+        self.launched_s = time.perf_counter()
+        self.proc = subprocess.Popen(cmd, cwd=REPO, env=_python_env(), stdout=subprocess.DEVNULL, stderr=self._log)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.proc.poll() is None and self.proc.returncode is None:
+            self.proc.send_signal(signal.SIGTERM)
+        with contextlib.suppress(ChildProcessError):
+            self.exit_code, self.peak_rss_mb = _wait_rusage(self.proc, STOP_TIMEOUT_S)
+        self.ctx.destroy(linger=0)
+        self._log.close()
+        shutil.rmtree(self._state, ignore_errors=True)
+
+    def log_tail(self) -> str:
+        """The daemon's last stderr line (why it failed), or ""."""
+        self._log.seek(0)
+        lines = self._log.read().decode(errors="replace").strip().splitlines()
+        return lines[-1] if lines else ""
+
+    def request(self, cmd: dict, timeout_s: float = 5.0) -> dict | None:
+        """One control request on a fresh REQ socket (a REQ that timed out cannot be reused)."""
+        sock = self.ctx.socket(zmq.REQ)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.connect(self.control_ep)
+        try:
+            sock.send(pm.encode_request(cmd))
+            if sock.poll(int(timeout_s * 1000)):
+                return pm.decode_reply(sock.recv())
+            return None
+        finally:
+            sock.close()
+
+    def wait_ready(self) -> None:
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while self.request({"cmd": "ping"}, timeout_s=1.0) is None:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"daemon exited with status {self.proc.returncode}: {self.log_tail()}")
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"daemon not ready after {START_TIMEOUT_S:g} s")
+
+
+class Receiver(threading.Thread):
+    """Collects, per frame number, the receipt time of each labels/<subject> message."""
+
+    def __init__(self, ctx: zmq.Context, endpoint: str):
+        super().__init__(daemon=True)
+        self.sock = ctx.socket(zmq.SUB)
+        self.sock.setsockopt(zmq.LINGER, 0)
+        self.sock.setsockopt(zmq.SUBSCRIBE, pm.TOPIC_LABELS)
+        self.sock.connect(endpoint)
+        self.received: dict[int, list[int]] = {}  # frame -> receipt times [perf_counter ns]
+        self.labeled: dict[int, int] = {}  # frame -> labeled markers (summed over subjects)
+        self.first_ns: int | None = None  # receipt time of the first labels message
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            if not self.sock.poll(50):
+                continue
+            while True:
+                try:
+                    parts = self.sock.recv_multipart(zmq.NOBLOCK)
+                except zmq.Again:
+                    break
+                now = time.perf_counter_ns()
+                try:
+                    msg = pm.decode(parts)
+                except pm.ProtocolError:
+                    continue
+                if self.first_ns is None:
+                    self.first_ns = now
+                self.received.setdefault(msg.frame, []).append(now)
+                self.labeled[msg.frame] = self.labeled.get(msg.frame, 0) + int(np.count_nonzero(msg.point_index >= 0))
+        self.sock.close()
+
+
+def replay(daemon: DaemonProcess, frames: list, rate_hz: float, first_frame: int, n_subjects: int,
+           scored_from: int) -> dict:
+    """Send `frames` [(points (N,3), labels | None)] paced drift-free at `rate_hz`; latency per frame is
+    send -> receipt of the last of its `n_subjects` labels messages. Frames before `scored_from` (the
+    seed) are sent but not counted."""
+    receiver = Receiver(daemon.ctx, daemon.publish_ep)
+    receiver.start()
+    pub = daemon.ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    pub.connect(daemon.frames_ep)
+    time.sleep(0.5)  # let both subscriptions reach their publishers (PUB/SUB drops before that)
+    sent: dict[int, int] = {}
+    t0 = time.perf_counter()
+    for k, (points, labels) in enumerate(frames):
+        target = t0 + k / rate_hz
+        delay = target - time.perf_counter()
+        if delay > 0:
+            time.sleep(delay)
+        number = first_frame + k
+        msg = pm.Frame(stream="default", frame=number, t_ns=int(round(number * 1e9 / rate_hz)),
+                       points=np.asarray(points, np.float32), labels=labels)
+        sent[number] = time.perf_counter_ns()
+        pub.send_multipart(pm.encode(msg))
+    time.sleep(0.5)
+    receiver.stop.set()
+    receiver.join()
+    pub.close()
+    latency_ms, unanswered = [], 0
+    for number, t_send in sent.items():
+        if number - first_frame < scored_from:
+            continue
+        got = receiver.received.get(number, [])
+        if len(got) < n_subjects:
+            unanswered += 1
+        else:
+            latency_ms.append((sorted(got)[n_subjects - 1] - t_send) * 1e-6)
+    lat = np.array(latency_ms) if latency_ms else np.array([np.nan])
+    scored = len(sent) - scored_from
+    return {
+        "frames": scored,
+        "p50_ms": float(np.percentile(lat, 50)),
+        "p99_ms": float(np.percentile(lat, 99)),
+        "max_ms": float(np.max(lat)),
+        "unanswered": unanswered,
+        "unanswered_fraction": unanswered / max(scored, 1),
+    }
+
+
+# ---------------------------------------------------------------------------------------------- measures
+
+
+def label_throughput(data_dir: Path, file: str, max_skip_frames: int | None) -> dict:
+    """`mocap-service label` on a whole recording (seeded from its first 2 s); wall time includes start-up."""
+    from recordings.c3d import read_c3d
+
+    rec = read_c3d(data_dir / file)
+    seed = int(round(SEED_S * rec.rate_hz))
+    with tempfile.TemporaryDirectory(prefix="mocap-bench-label-") as tmp:
+        cmd = [sys.executable, "-m", "service.cli", "label", str(data_dir / file), "-o", f"{tmp}/out.c3d",
+               "--seed-frames", str(seed), "--no-progress"]
+        if max_skip_frames is not None:
+            cmd += ["--max-skip-frames", str(max_skip_frames)]
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, cwd=REPO, env=_python_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        err = proc.stderr.read().decode(errors="replace")  # small: one sentence at most
+        code, rss = _wait_rusage(proc, 3600)
+        wall = time.perf_counter() - t0
+    if code != 0:
+        return {"error": f"exit {code}: {err.strip()[-200:]}"}
+    return {"file": file, "frames": rec.n_frames, "wall_s": wall, "fps": rec.n_frames / wall, "peak_rss_mb": rss}
+
+
+def startup(data_dir: Path, cache_dir: str) -> dict:
+    """Seconds from launching the daemon to receiving labels for its first frame; frames (seeded with
+    their true labels) are offered every 10 ms from launch on, as a live capture system would."""
+    from recordings.c3d import read_c3d
+
+    rec = read_c3d(data_dir / QUICK_THROUGHPUT_FILE)
+    points = rec.points_m[0]
+    keep = np.all(np.isfinite(points), axis=1)
+    labels = [label if is_marker_label(label) else "" for label in np.array(rec.labels)[keep]]
+    with DaemonProcess(cache_dir) as daemon:
+        receiver = Receiver(daemon.ctx, daemon.publish_ep)
+        receiver.start()
+        pub = daemon.ctx.socket(zmq.PUB)
+        pub.setsockopt(zmq.LINGER, 0)
+        pub.connect(daemon.frames_ep)
+        number, first_s = 0, None
+        while first_s is None and time.perf_counter() - daemon.launched_s < START_TIMEOUT_S:
+            if daemon.proc.poll() is not None:
+                break
+            pub.send_multipart(pm.encode(pm.Frame("default", number, number * 10_000_000, points[keep].astype(np.float32), labels)))
+            number += 1
+            time.sleep(0.01)
+            if receiver.first_ns is not None:
+                first_s = receiver.first_ns * 1e-9 - daemon.launched_s
+        receiver.stop.set()
+        receiver.join()
+        pub.close()
+        failure = "" if first_s is not None else f"no labels within {START_TIMEOUT_S:g} s: {daemon.log_tail()}"
+    if failure:
+        return {"error": failure}
+    return {"seconds": first_s, "peak_rss_mb": daemon.peak_rss_mb}
+
+
+def latency(data_dir: Path, cache_dir: str, seconds: float, max_skip_frames: int | None = None) -> dict:
+    """One subject (LATENCY_FILE at L2, seeded for 2 s) replayed at its rate through the daemon."""
+    from recordings.c3d import read_c3d
+    import dataclasses
+
+    rec = read_c3d(data_dir / LATENCY_FILE)
+    n = min(rec.n_frames, int(round((seconds + SEED_S) * rec.rate_hz)))
+    seq = corrupt(dataclasses.replace(rec, points_m=rec.points_m[:n]), "L2", 1)
+    frames = [(p, seq.true_labels(f) if f < seq.seed_frames else None)
+              for f, p in enumerate(seq.points_m) if p is not None]
+    with DaemonProcess(cache_dir, max_skip_frames) as daemon:
+        daemon.wait_ready()
+        result = replay(daemon, frames, seq.rate_hz, 0, 1, seq.seed_frames)
+    result["peak_rss_mb"] = daemon.peak_rss_mb
+    result["file"] = f"{LATENCY_FILE} L2"
+    return result
+
+
+def scale(data_dir: Path, cache_dir: str, seconds: float, counts=SCALE_COUNTS) -> dict:
+    """N shifted copies of SCALE_FILE as N subjects at 120 Hz; per N the latency until the last subject's
+    labels. Sustained: p99 under one frame period and at most 1 % of frames unanswered. Stops at the
+    first N that is not sustained."""
+    from recordings.c3d import read_c3d
+
+    rec = read_c3d(data_dir / SCALE_FILE)
+    names = [split_label(label)[1] for label in rec.labels]
+    true = np.array([is_marker_label(label) for label in rec.labels])
+    period_ms = 1000 / SCALE_RATE_HZ
+    seed_frames = int(round(SEED_S * SCALE_RATE_HZ))
+    n_frames = seed_frames + int(round(seconds * SCALE_RATE_HZ))
+    rng = np.random.default_rng(0)
+    rows, sustained, first_frame = [], 0, 0
+    with DaemonProcess(cache_dir) as daemon:
+        daemon.wait_ready()
+        for n_subjects in counts:
+            daemon.request({"cmd": "reset"})
+            frames = []
+            for f in range(n_frames):
+                points, labels = [], []
+                for k in range(n_subjects):
+                    src = (f + k * 600) % rec.n_frames  # each copy runs 5 s apart in time
+                    p = rec.points_m[src] + [SCALE_SPACING_M * k, 0.0, 0.0]
+                    ok = np.all(np.isfinite(p), axis=1) & true
+                    points.append(p[ok])
+                    labels += [f"P{k}:{names[i]}" for i in np.flatnonzero(ok)]
+                cloud = np.concatenate(points)
+                order = rng.permutation(len(cloud))
+                frames.append((cloud[order], [labels[i] for i in order] if f < seed_frames else None))
+            r = replay(daemon, frames, SCALE_RATE_HZ, first_frame, n_subjects, seed_frames)
+            first_frame += n_frames + 10
+            r["subjects"] = n_subjects
+            r["sustained"] = bool(r["p99_ms"] < period_ms and r["unanswered_fraction"] <= 0.01)
+            rows.append(r)
+            if not r["sustained"]:
+                break
+            sustained = n_subjects
+    return {"rows": rows, "sustained_subjects": sustained, "period_ms": period_ms, "peak_rss_mb": daemon.peak_rss_mb}
+
+
+def _guarded(name: str, fn, *args, **kwargs) -> dict:
+    print(f"speed: {name} ...", file=sys.stderr, end=" ", flush=True)
+    t0 = time.perf_counter()
+    try:
+        result = fn(*args, **kwargs)
+    except Exception as e:  # noqa: BLE001 - a failed measurement is reported, the others still run
+        result = {"error": f"{type(e).__name__}: {e}"}
+    print(f"{time.perf_counter() - t0:.0f} s", file=sys.stderr)
+    return result
+
+
+def measure(data_dir: Path, quick: bool, cache_dir: str) -> dict:
+    """Every measurement, alone on the machine (run after the accuracy pool has finished)."""
+    file = QUICK_THROUGHPUT_FILE if quick else THROUGHPUT_FILE
+    out: dict = {}
+    # Warm the compile cache for the CLI's own XLA flags (the accuracy workers ran single-threaded XLA).
+    _guarded("label warm-up", label_throughput, data_dir, QUICK_THROUGHPUT_FILE, None)
+    out["label_adaptive"] = _guarded("label (adaptive)", label_throughput, data_dir, file, None)
+    out["label_every_frame"] = _guarded("label (solve every frame)", label_throughput, data_dir, file, 0)
+    with tempfile.TemporaryDirectory(prefix="mocap-bench-jax-") as empty_cache:
+        if not quick:
+            out["startup_cold"] = _guarded("start-up (cold cache)", startup, data_dir, empty_cache)
+        else:
+            out["startup_cold"] = {"error": "skipped in --quick"}
+    out["startup_warm"] = _guarded("start-up (warm cache)", startup, data_dir, cache_dir)
+    seconds = 8.0 if quick else 30.0
+    out["latency"] = _guarded("online latency", latency, data_dir, cache_dir, seconds)
+    out["latency_every_frame"] = _guarded("online latency (solve every frame)", latency, data_dir, cache_dir,
+                                          seconds, 0)
+    out["scale"] = _guarded("scale", scale, data_dir, cache_dir, 3.0 if quick else 8.0,
+                            SCALE_COUNTS[:2] if quick else SCALE_COUNTS)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- report
+
+
+def _f(x, fmt="{:.1f}") -> str:
+    return "–" if x is None or (isinstance(x, float) and x != x) else fmt.format(x)
+
+
+def report_lines(inproc: dict, speed: dict) -> list[str]:
+    lines = [
+        "In-process (the accuracy runs above, 2 worker processes with single-threaded XLA; step time only):",
+        "",
+        "| variant | frames | frames/s | per-frame cost mean / p99, 41 markers at L2 [ms] | frames with a solve | peak RSS [MiB] |",
+        "|---|---|---|---|---|---|",
+    ]
+    for v, s in inproc.items():
+        lines.append(f"| {v} | {s['frames']} | {_f(s['fps'], '{:.0f}')} | {_f(s['l2_mean_ms'], '{:.2f}')} / "
+                     f"{_f(s['l2_p99_ms'], '{:.2f}')} | {_f(100 * s['solved_fraction'], '{:.0f} %')} | "
+                     f"{_f(s['peak_rss_mb'], '{:.0f}')} |")
+    if "adaptive" in inproc and "nnt" in inproc:
+        lines += ["", f"Engine (adaptive) cost relative to the NNT baseline: "
+                  f"{inproc['nnt']['fps'] / inproc['adaptive']['fps']:.1f}x per frame."]
+    lines.append("")
+    if not speed:
+        return lines + ["Daemon and CLI measurements skipped (`--no-speed`)."]
+
+    def err(d: dict) -> str:
+        return f"failed: {d['error']}" if "error" in d else ""
+
+    lines += ["Programs (subprocesses, alone on the machine, default XLA threading; one run each):", "",
+              "| measurement | result | peak RSS [MiB] |", "|---|---|---|"]
+    for key, title in (("label_adaptive", "`mocap-service label`, adaptive"),
+                       ("label_every_frame", "`mocap-service label --max-skip-frames 0`")):
+        d = speed.get(key, {})
+        res = err(d) or f"{d['fps']:.0f} frames/s ({d['frames']} frames of {d['file']} in {d['wall_s']:.1f} s, start-up included)"
+        lines.append(f"| {title} | {res} | {_f(d.get('peak_rss_mb'), '{:.0f}')} |")
+    for key, title in (("startup_cold", "start-up to first labeled frame, empty compile cache"),
+                       ("startup_warm", "start-up to first labeled frame, warm compile cache")):
+        d = speed.get(key, {})
+        lines.append(f"| {title} | {err(d) or _f(d.get('seconds'), '{:.1f} s')} | {_f(d.get('peak_rss_mb'), '{:.0f}')} |")
+    for key, title in (("latency", "online latency p50 / p99 / max, adaptive"),
+                       ("latency_every_frame", "online latency p50 / p99 / max, solve every frame")):
+        d = speed.get(key, {})
+        res = err(d) or (f"{d['p50_ms']:.2f} / {d['p99_ms']:.2f} / {d['max_ms']:.1f} ms over {d['frames']} frames "
+                         f"of {d['file']} at its rate, {d['unanswered']} unanswered")
+        lines.append(f"| {title} | {res} | {_f(d.get('peak_rss_mb'), '{:.0f}')} |")
+    d = speed.get("scale", {})
+    if "error" in d:
+        lines.append(f"| scale | {err(d)} | |")
+    else:
+        lines.append(f"| subjects sustained at 120 Hz (p99 < {d['period_ms']:.1f} ms, ≤ 1 % unanswered) | "
+                     f"{d['sustained_subjects']} | {_f(d.get('peak_rss_mb'), '{:.0f}')} |")
+        lines += ["", "Scale runs (41-marker copies of " + SCALE_FILE + "):", "",
+                  "| subjects | p50 [ms] | p99 [ms] | max [ms] | unanswered |", "|---|---|---|---|---|"]
+        for r in d["rows"]:
+            lines.append(f"| {r['subjects']} | {_f(r['p50_ms'], '{:.2f}')} | {_f(r['p99_ms'], '{:.2f}')} | "
+                         f"{_f(r['max_ms'], '{:.1f}')} | {r['unanswered']} / {r['frames']} |")
+    lines += ["", "Latency is measured by the benchmark client: from just before a frame is sent to the receipt "
+              "of its (last subject's) labels message, over loopback TCP, seed frames excluded. Markers per "
+              "subject beyond 41 are not measured yet."]
+    return lines
