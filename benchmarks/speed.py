@@ -284,6 +284,9 @@ def latency(data_dir: Path, cache_dir: str, seconds: float, max_skip_frames: int
     with DaemonProcess(cache_dir, max_skip_frames) as daemon:
         daemon.wait_ready()
         result = replay(daemon, frames, seq.rate_hz, 0, 1, seq.seed_frames)
+        status = daemon.request({"cmd": "status"}) or {}
+    # the daemon's own processing time per frame (engine + publishing, its last 1024 frames)
+    result["processing_ms"] = status.get("latency_ms", {})
     result["peak_rss_mb"] = daemon.peak_rss_mb
     result["file"] = f"{LATENCY_FILE} L2"
     return result
@@ -342,23 +345,25 @@ def _guarded(name: str, fn, *args, **kwargs) -> dict:
 
 
 def measure(data_dir: Path, quick: bool, cache_dir: str) -> dict:
-    """Every measurement, alone on the machine (run after the accuracy pool has finished)."""
+    """Every measurement, alone on the machine (run after the accuracy pool has finished). `quick` keeps
+    the short ones (small file, warm start only, short replays, 1-2 subjects)."""
     file = QUICK_THROUGHPUT_FILE if quick else THROUGHPUT_FILE
+    skipped = {"error": "skipped in --quick"}
     out: dict = {}
-    # Warm the compile cache for the CLI's own XLA flags (the accuracy workers ran single-threaded XLA).
-    _guarded("label warm-up", label_throughput, data_dir, QUICK_THROUGHPUT_FILE, None)
+    if not quick:  # warm the compile cache for the CLI's own XLA flags (the workers ran single-threaded)
+        _guarded("label warm-up", label_throughput, data_dir, QUICK_THROUGHPUT_FILE, None)
     out["label_adaptive"] = _guarded("label (adaptive)", label_throughput, data_dir, file, None)
     out["label_every_frame"] = _guarded("label (solve every frame)", label_throughput, data_dir, file, 0)
-    with tempfile.TemporaryDirectory(prefix="mocap-bench-jax-") as empty_cache:
-        if not quick:
+    if quick:
+        out["startup_cold"] = skipped
+    else:
+        with tempfile.TemporaryDirectory(prefix="mocap-bench-jax-") as empty_cache:
             out["startup_cold"] = _guarded("start-up (cold cache)", startup, data_dir, empty_cache)
-        else:
-            out["startup_cold"] = {"error": "skipped in --quick"}
     out["startup_warm"] = _guarded("start-up (warm cache)", startup, data_dir, cache_dir)
-    seconds = 8.0 if quick else 30.0
+    seconds = 6.0 if quick else 30.0
     out["latency"] = _guarded("online latency", latency, data_dir, cache_dir, seconds)
-    out["latency_every_frame"] = _guarded("online latency (solve every frame)", latency, data_dir, cache_dir,
-                                          seconds, 0)
+    out["latency_every_frame"] = skipped if quick else _guarded(
+        "online latency (solve every frame)", latency, data_dir, cache_dir, seconds, 0)
     out["scale"] = _guarded("scale", scale, data_dir, cache_dir, 3.0 if quick else 8.0,
                             SCALE_COUNTS[:2] if quick else SCALE_COUNTS)
     return out
@@ -406,8 +411,11 @@ def report_lines(inproc: dict, speed: dict) -> list[str]:
     for key, title in (("latency", "online latency p50 / p99 / max, adaptive"),
                        ("latency_every_frame", "online latency p50 / p99 / max, solve every frame")):
         d = speed.get(key, {})
+        proc = d.get("processing_ms") or {}
         res = err(d) or (f"{d['p50_ms']:.2f} / {d['p99_ms']:.2f} / {d['max_ms']:.1f} ms over {d['frames']} frames "
-                         f"of {d['file']} at its rate, {d['unanswered']} unanswered")
+                         f"of {d['file']} at its rate, {d['unanswered']} unanswered; the daemon's own processing "
+                         f"p50 / p99 / max {_f(proc.get('p50'), '{:.2f}')} / {_f(proc.get('p99'), '{:.2f}')} / "
+                         f"{_f(proc.get('max'), '{:.1f}')} ms")
         lines.append(f"| {title} | {res} | {_f(d.get('peak_rss_mb'), '{:.0f}')} |")
     d = speed.get("scale", {})
     if "error" in d:

@@ -85,28 +85,28 @@ class Children:
 
     @staticmethod
     def stop(proc: subprocess.Popen, grace_s: float = 30.0) -> int:
-        """SIGINT (every project process stops cleanly on it), SIGKILL if it has not exited after grace_s.
-
-        A Ctrl-C during the wait is ignored: stopping the children must finish.
-        """
+        """SIGINT (every project process stops cleanly on it), SIGKILL if it has not exited after grace_s."""
         if proc.poll() is None:
-            previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+            proc.send_signal(signal.SIGINT)
             try:
-                proc.send_signal(signal.SIGINT)
-                try:
-                    proc.wait(grace_s)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
-            finally:
-                signal.signal(signal.SIGINT, previous)
+                proc.wait(grace_s)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
         return proc.returncode
 
     def stop_all(self) -> None:
-        for _, proc in reversed(self.procs):
-            self.stop(proc)
-            if proc.stdout and not proc.stdout.closed:  # stderr pipes are closed by their reader thread
-                proc.stdout.close()
+        """Stop every child; a Ctrl-C meanwhile is ignored (the clean-up must finish, and is bounded)."""
+        in_main = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if in_main else None
+        try:
+            for _, proc in reversed(self.procs):
+                self.stop(proc)
+                if proc.stdout and not proc.stdout.closed:  # stderr pipes are closed by their reader thread
+                    proc.stdout.close()
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGINT, previous)
 
     def __enter__(self) -> Children:
         return self

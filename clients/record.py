@@ -56,6 +56,8 @@ PLAUSIBLE_LATENCY_S = 60.0
 #: seconds between two requests for the same missing skeleton, and how many requests at most
 SKELETON_RETRY_S = 1.0
 SKELETON_MAX_REQUESTS = 10
+#: messages taken in one go before the stop conditions are checked again
+MAX_BATCH = 1000
 #: after a stop by --frames, messages already queued for recorded frames are still taken for this long [s]
 DRAIN_S = 0.2
 
@@ -308,8 +310,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="mocap-record", description="Record the daemon's results to C3D, BVH and NDJSON.")
     p.add_argument("-o", "--output", required=True, metavar="OUT",
                    help="output base path: writes OUT.c3d, OUT_<subject>.bvh, OUT.ndjson, OUT_labels.npz")
-    p.add_argument("--endpoint", default=DEFAULT_ENDPOINT, help=f"daemon's results endpoint ({DEFAULT_ENDPOINT})")
-    p.add_argument("--control", default=DEFAULT_CONTROL, help=f"daemon's control endpoint ({DEFAULT_CONTROL})")
+    p.add_argument("--endpoint", default=DEFAULT_ENDPOINT, metavar="EP", help=f"daemon's results endpoint ({DEFAULT_ENDPOINT})")
+    p.add_argument("--control", default=DEFAULT_CONTROL, metavar="EP", help=f"daemon's control endpoint ({DEFAULT_CONTROL})")
     p.add_argument("--duration", type=_positive, metavar="S", help="stop after S seconds")
     p.add_argument("--frames", type=int, metavar="N", help="stop after N frames with results")
     p.add_argument("--idle", type=_non_negative, default=5.0, metavar="S",
@@ -372,7 +374,12 @@ def main(argv: list[str] | None = None) -> int:
         start_s = last_result_s = time.monotonic()
         last_line_s = 0.0
         drain_until = None
-        with open(ndjson_path, "w") as ndjson:
+        try:
+            ndjson = open(ndjson_path, "w")
+        except OSError as e:
+            print(f"mocap-record: cannot write {ndjson_path}: {e.strerror}", file=sys.stderr)
+            return 2
+        with ndjson:
             while True:
                 now_s = time.monotonic()
                 if stop["why"] is None:
@@ -386,7 +393,7 @@ def main(argv: list[str] | None = None) -> int:
                 if stop["why"] is not None and (drain_until is None or now_s >= drain_until):
                     break
                 if sock.poll(100, zmq.POLLIN):
-                    while True:  # everything queued, then back to the checks above
+                    for _ in range(MAX_BATCH):  # what is queued (bounded, so the stop checks still run)
                         try:
                             parts = sock.recv_multipart(zmq.NOBLOCK)
                         except zmq.Again:
@@ -434,7 +441,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mocap-record: no results arrived from {args.endpoint} (stopped by {stop['why']}); "
               "nothing written", file=sys.stderr)
         return 1
-    written = rec.write(base, args.rate, say=say) + [ndjson_path]
+    try:
+        written = rec.write(base, args.rate, say=say) + [ndjson_path]
+    except (OSError, ValueError) as e:  # C3DError is a ValueError
+        print(f"mocap-record: cannot write the recording to {base}.*: {e}", file=sys.stderr)
+        return 1
     lat = [x for x in rec.latencies_s if 0 <= x < PLAUSIBLE_LATENCY_S]
     summary = (f"recorded {len(rec.frames)} frames of {len(rec.subjects)} subject(s) "
                f"({', '.join(sorted(rec.subjects))}), stopped by {stop['why']}")

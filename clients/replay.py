@@ -357,8 +357,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Publish a C3D recording (or the synthetic performer) to the daemon as frame messages.",
     )
     p.add_argument("file", nargs="?", metavar="FILE.c3d", help="recording to play (default: synthetic performer)")
-    p.add_argument("--endpoint", default=DEFAULT_ENDPOINT, help=f"daemon's frames endpoint ({DEFAULT_ENDPOINT})")
-    p.add_argument("--control", default=DEFAULT_CONTROL, help=f"daemon's control endpoint ({DEFAULT_CONTROL})")
+    p.add_argument("--endpoint", default=DEFAULT_ENDPOINT, metavar="EP", help=f"daemon's frames endpoint ({DEFAULT_ENDPOINT})")
+    p.add_argument("--control", default=DEFAULT_CONTROL, metavar="EP", help=f"daemon's control endpoint ({DEFAULT_CONTROL})")
     p.add_argument("--rate", type=_positive, metavar="HZ", help="capture rate (default: the recording's)")
     p.add_argument("--speed", type=_positive, default=1.0, metavar="X", help="playback speed factor (1)")
     p.add_argument("--loop", action="store_true", help="play again and again until interrupted")
@@ -389,6 +389,9 @@ def _raise_interrupt(signum, frame):
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     say = (lambda s: None) if args.quiet else (lambda s: print(f"mocap-replay: {s}", file=sys.stderr))
+    # Ctrl-C and SIGTERM stop cleanly (explicit: a launcher may have started us with SIGINT ignored).
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, _raise_interrupt)
     try:
         seq = load_sequence(args.file, level=args.level, seed=args.seed, rate_hz=args.rate,
                             duration_s=args.duration, up_axis=args.up_axis)
@@ -397,13 +400,13 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as e:
         print(f"mocap-replay: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # while loading or generating the recording: nothing sent yet
+        print("mocap-replay: interrupted before sending", file=sys.stderr)
+        return 130
     labeled = seq.n_frames if args.keep_labels else int(round(args.seed_seconds * seq.rate_hz))
     plan = Plan(seq=seq, rate_hz=seq.rate_hz, speed=args.speed, labeled_frames=labeled, loop=args.loop,
                 stream=args.stream, stamp_send_time=args.stamp_send_time)
 
-    # Ctrl-C and SIGTERM stop cleanly (explicit: a launcher may have started us with SIGINT ignored).
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, _raise_interrupt)
     context = zmq.Context()
     sock = context.socket(zmq.XPUB)
     sock.setsockopt(zmq.LINGER, LINGER_MS)

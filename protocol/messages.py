@@ -441,9 +441,9 @@ def decode(parts: list[bytes], max_points: int = MAX_POINTS) -> Message:
     if not isinstance(parts, (list, tuple)) or len(parts) != 2:
         n = len(parts) if isinstance(parts, (list, tuple)) else type(parts).__name__
         raise ProtocolError("bad_parts", f"expected [topic, payload], got {n} parts")
-    topic, payload = bytes(parts[0]) if isinstance(parts[0], (bytes, bytearray, memoryview)) else None, parts[1]
-    if topic is None:
+    if not isinstance(parts[0], (bytes, bytearray, memoryview)):
         raise ProtocolError("bad_parts", "topic must be bytes")
+    topic, payload = bytes(parts[0]), parts[1]
     if topic == TOPIC_FRAME:
         m = _unpack(payload)
         _check_version(m)

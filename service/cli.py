@@ -58,11 +58,10 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _serve(args) -> int:
-    from service.daemon import Daemon, DaemonError
-
     config = load_config(args.config, frames_endpoint=args.frames, publish_endpoint=args.publish,
                          control_endpoint=args.control, state_dir=args.state_dir, cache_dir=args.cache_dir,
                          engine_max_skip_frames=args.max_skip_frames)
+    from service.daemon import Daemon, DaemonError  # after the config: a bad flag must not wait for jax
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())

@@ -6,11 +6,11 @@ single loop over the frames SUB socket and the control REP socket is the simples
 are served between frames, never concurrently with `Engine.step`.
 
 Backpressure: the SUB socket keeps at most `max_queue_frames` frames (ZeroMQ high-water mark; beyond it
-ZeroMQ drops). Each loop turn drains every waiting frame; if more than one valid frame of a stream is
-waiting, the daemon has fallen behind: it processes only the newest and counts the others as dropped
-("catching up", flagged in status). When it keeps up, one frame waits at a time and every frame is
-processed. Skipping is what keeps the latency bounded: processing a backlog in order would make every later
-frame late too.
+ZeroMQ drops). Each loop turn drains every waiting frame. A short backlog (up to MAX_BACKLOG_FRAMES of a
+stream: one slow frame, a scheduling hiccup) is processed in order, so no frame goes unanswered; a longer
+one means the daemon has fallen behind: it processes only the newest and counts the others as dropped
+("catching up", flagged in status). Skipping is what keeps the latency bounded: working through a long
+backlog would make every later frame late too.
 
 Start-up: sockets are bound first (a port conflict fails at once), then the engine is created with JAX's
 persistent compilation cache enabled and warmed up; only then does the loop run. A client may connect at
@@ -216,7 +216,8 @@ class Daemon:
         return Path(self.config.state_dir).expanduser()
 
     def _state_call(self, what: str) -> list[str]:
-        """engine.save/load on state_dir; a failure is logged and reported, never fatal."""
+        """engine.save/load on state_dir (created if needed; a missing one loads nothing). Raises what the
+        engine raises: the callers decide whether that is a failed command, a log line or a warning."""
         directory = self._state_dir()
         if what == "load" and not directory.is_dir():
             return []

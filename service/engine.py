@@ -216,8 +216,7 @@ class Engine:
             self._maybe_calibrate(s, frame)
             s.state, res = tracker.step(s.model, s.state, points, free, frame.t_ns, self.config, self.solver)
             free[res.point_index[res.point_index >= 0]] = False
-            cur = np.where((res.point_index >= 0)[:, None], points[np.maximum(res.point_index, 0)], np.nan)
-            s.history.append(cur)
+            s.history.append(tracker._gather(points, res.point_index))
             outputs.append(self._output(s, frame, res, keep))
         if self.config.tpose_auto and labels is None:
             new_subjects += self._find_tposes(frame, points, free)
@@ -338,10 +337,11 @@ class Engine:
         return created
 
     def _output(self, s: _Subject, frame, res: tracker.StepResult, keep) -> SubjectOutput:
-        idx = res.point_index.copy()
         pts = np.asarray(frame.points_m, np.float64).reshape(-1, 3)
-        idx = np.where(idx >= 0, keep[np.maximum(idx, 0)], -1).astype(np.int32)  # back to the frame's indexing
-        positions = np.where((idx >= 0)[:, None], pts[np.maximum(idx, 0)], np.nan).astype(np.float32)
+        idx = np.full(len(res.point_index), -1, np.int32)
+        ok = res.point_index >= 0
+        idx[ok] = keep[res.point_index[ok]]  # back to the frame's own indexing (non-finite points dropped)
+        positions = tracker._gather(pts, idx).astype(np.float32)
         st = s.state
         return SubjectOutput(
             subject=s.model.name,

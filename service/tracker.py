@@ -204,6 +204,14 @@ def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, whic
     return pred, spread
 
 
+def _gather(points: np.ndarray, point_index: np.ndarray) -> np.ndarray:
+    """(M, 3) positions of the points each marker is labeled with, NaN where unlabeled (safe for N = 0)."""
+    out = np.full((len(point_index), 3), np.nan)
+    ok = point_index >= 0
+    out[ok] = points[point_index[ok]]
+    return out
+
+
 def _unswap(point_index: np.ndarray, cur: np.ndarray, rpred: np.ndarray, err: np.ndarray, tol_m: float) -> None:
     """Swap the labels of two markers when each sits where the other's rigid partners expect it (markers
     that passed close to each other and were tracked through crossed). In place."""
@@ -266,7 +274,7 @@ def step(
     taken[cols] = True
 
     labeled = point_index >= 0
-    cur = np.where(labeled[:, None], points[np.maximum(point_index, 0)], np.nan)
+    cur = _gather(points, point_index)
 
     # 2. Predict every marker from its rigid partners; a tracked label its partners disagree with (a swap
     #    of two close markers, a ghost caught while the marker hid) is withdrawn and re-assigned below.
@@ -309,13 +317,19 @@ def step(
         use_skel = missing & ~has_rigid
         pred_missing[use_skel] = skel_pred[use_skel]
         gate_missing[use_skel] = config.reacquire_gate_m
+    if labeled.sum() < 4:
+        # Lost (full occlusion, a restart from saved state, a subject that left): look for every marker
+        # where it was last, coasting, so the subject is picked up again when it shows up there.
+        use_coast = missing & ~np.isfinite(pred_missing[:, 0])
+        pred_missing[use_coast] = coast[use_coast]
+        gate_missing[use_coast] = config.reacquire_gate_m
     gate_missing = np.where(missing, gate_missing, 0.0)
     rows, cols = _assign(pred_missing, gate_missing, points, ~taken)
     if len(rows):
         point_index[rows] = cols
         taken[cols] = True
         labeled = point_index >= 0
-        cur = np.where(labeled[:, None], points[np.maximum(point_index, 0)], np.nan)
+        cur = _gather(points, point_index)
 
     # 5. Refine and reject labels the model disagrees with.
     if solved and len(rows):

@@ -4,12 +4,10 @@ stops cleanly on SIGINT/SIGTERM, saves its state and frees its ports."""
 
 from __future__ import annotations
 
-import os
 import signal
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -83,6 +81,24 @@ def test_label_matches_the_in_process_engine(tmp_path, small_c3d, cache_dir):
                for i, name in enumerate(labeled.labels)]
     assert np.mean(correct) > 0.95
     assert np.mean(np.isfinite(labeled.points_m[30:, :, 0])) > 0.97
+
+
+def test_label_a_real_recording_from_seeds(tmp_path, cache_dir):
+    """HDM05 (Vicon, mm, "Daniel:" prefixes, 3 unnamed *N points): seeded for 1 s, every marker's output
+    trajectory is that marker's true trajectory."""
+    from recordings.c3d import read_c3d
+    from tests.conftest import data_path
+
+    path = data_path("hdm05/HDM_dg_06-03_03_120.c3d")
+    out = tmp_path / "labeled.c3d"
+    result = cli("label", path, "-o", out, "--seed-frames", 120, "--cache-dir", cache_dir, "--no-progress")
+    assert result.returncode == 0, result.stderr
+    source, labeled = read_c3d(path), read_c3d(out)
+    truth = {label: source.points_m[:, i] for i, label in enumerate(source.labels)}
+    assert len(labeled.labels) == 41 and set(labeled.labels) <= set(truth)
+    right = [np.nanmax(np.abs(labeled.points_m[120:, i] - truth[label][120:])) < 1e-4
+             for i, label in enumerate(labeled.labels)]
+    assert np.mean(right) > 0.95
 
 
 def test_label_bad_input_file(tmp_path):

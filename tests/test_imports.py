@@ -13,6 +13,8 @@ FORBIDDEN = {
     "protocol": {"zmq", "jax", "jaxlib", "optimistix", "lineax", "equinox", "service", "clients", "recordings"},
     "recordings": {"zmq", "jax", "jaxlib", "optimistix", "lineax", "equinox", "service", "clients"},
     "clients": {"service", "jax", "jaxlib", "optimistix", "lineax", "equinox"},
+    # Only service/ imports jax (STYLE.md); benchmarks drive the engine through service/.
+    "benchmarks": {"jax", "jaxlib", "optimistix", "lineax", "equinox"},
 }
 
 
@@ -43,3 +45,12 @@ def test_layers_import_one_way(package):
         str(path.relative_to(ROOT)): sorted(imported_top_level(path) & FORBIDDEN[package]) for path in files
     }
     assert {k: v for k, v in offenders.items() if v} == {}
+
+
+def test_protocol_needs_only_stdlib_numpy_msgpack():
+    """Any tool can speak the protocol with two small dependencies."""
+    import sys
+
+    allowed = set(sys.stdlib_module_names) | {"numpy", "msgpack", "protocol", "__future__"}
+    used = set().union(*(imported_top_level(path) for path in (ROOT / "protocol").rglob("*.py")))
+    assert used - allowed == set()

@@ -102,7 +102,7 @@ def test_marker_jacobian_matches_central_differences():
                    for k in range(x0.size)], axis=1)
     assert J.shape == (3 * len(perf.marker_segment), 45)
     np.testing.assert_allclose(J, fd, atol=1e-7)
-    # every marker depends on the root translation with the identity, and only on its own chain
+    # every marker moves one to one with the root translation
     np.testing.assert_allclose(J[:, :3], np.tile(np.eye(3), (len(perf.marker_segment), 1)), atol=1e-9)
 
 

@@ -233,3 +233,28 @@ def test_control_round_trip_and_errors():
         pm.decode_reply(msgpack.packb({"v": 1}))
     with pytest.raises(pm.ProtocolError, match="missing_key:cmd"):
         pm.encode_request({"subject": "A"})
+
+
+def test_decode_raises_only_protocol_error_on_random_damage():
+    """The daemon needs one `except ProtocolError`: truncations, bit flips and random bytes of valid
+    messages of every kind must never raise anything else."""
+    rng = np.random.default_rng(1)
+    originals = [pm.encode(make()) for make in (_frame, _labels, _pose, _skeleton, _status)]
+    outcomes = {"ok": 0, "rejected": 0}
+    for _ in range(3000):
+        topic, payload = originals[rng.integers(len(originals))]
+        data = bytearray(payload)
+        kind = rng.integers(3)
+        if kind == 0:
+            data = data[: rng.integers(len(data))]
+        elif kind == 1:
+            for i in rng.integers(len(data), size=rng.integers(1, 4)):
+                data[i] ^= 1 << int(rng.integers(8))
+        else:
+            data = bytearray(rng.bytes(int(rng.integers(1, 64))))
+        try:
+            pm.decode([topic, bytes(data)])
+            outcomes["ok"] += 1
+        except pm.ProtocolError:
+            outcomes["rejected"] += 1
+    assert outcomes["rejected"] > 1000  # the damage was real

@@ -16,7 +16,7 @@ import zmq
 from scipy.spatial.transform import Rotation
 
 from clients.record import Recorder, bvh_motion, load_labels, pose_json, skeleton_from_reply
-from protocol.messages import Labels, Pose, Skeleton, Status, encode, encode_reply
+from protocol.messages import Labels, Pose, Skeleton, Status, decode, encode, encode_reply
 from protocol.skeleton import PARENTS, SEGMENTS
 from recordings.bvh import read_bvh
 from recordings.c3d import read_c3d
@@ -232,8 +232,6 @@ def test_rate_inferred_from_t_ns_and_frame_gaps():
     rec = Recorder()
     for frame in (0, 1, 2, 5, 6):  # a gap of 3 frames is still one frame per 1 / 100 s
         for parts in _results("A", frame):
-            from protocol.messages import decode
-
             rec.add(decode(parts), 0)
     assert rec.rate_hz() == pytest.approx(RATE_HZ)
     points, labels, first = rec.labeled_points()
@@ -241,9 +239,7 @@ def test_rate_inferred_from_t_ns_and_frame_gaps():
     assert np.isnan(points[3:5]).all()
 
 
-def test_bvh_not_written_without_skeleton(tmp_path, monkeypatch):
-    from protocol.messages import decode
-
+def test_bvh_not_written_without_skeleton(tmp_path):
     rec = Recorder()
     for parts in _results("A", 0):
         rec.add(decode(parts), 0)
@@ -269,8 +265,6 @@ def test_skeleton_from_reply_validates():
 
 
 def test_pose_json_is_plain_json():
-    from protocol.messages import decode
-
     pose = decode(_results("A", 3)[1])
     line = json.loads(pose_json(pose, 123))
     assert line["frame"] == 3 and line["recv_ns"] == 123

@@ -1,0 +1,151 @@
+"""service/calibration.py: the body frame and height of a synthetic T-pose (two headings, two marker
+sets), T-pose recognition, marker-to-segment assignment against the performer's truth, and T-pose
+detection in a cloud holding two people, nothing, or only ghosts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from protocol.skeleton import N_SEGMENTS, SEGMENTS
+from recordings.synthetic import multi_perform, perform
+from service.calibration import CalibrationError, body_frame, calibrate, clusters, detect_tpose, fill_reference, is_tpose
+
+MARKER_SETS = ("cmu41", "gt53")
+
+
+@pytest.mark.parametrize("marker_set", MARKER_SETS)
+@pytest.mark.parametrize("heading_rad", [0.0, 2.2])
+def test_body_frame_of_a_tpose(marker_set, heading_rad):
+    perf = perform(11, marker_set=marker_set, duration_s=0.5, heading_rad=heading_rad, start=(1.0, -2.0))
+    bf = body_frame(perf.recording.points_m[0])
+    forward, left, up = bf.R_world_body.T
+    expected_forward = np.array([np.cos(heading_rad), np.sin(heading_rad), 0.0])
+    expected_left = np.array([-np.sin(heading_rad), np.cos(heading_rad), 0.0])
+    assert forward @ expected_forward > np.cos(np.radians(10))
+    assert left @ expected_left > np.cos(np.radians(10))
+    np.testing.assert_allclose(up, [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(bf.R_world_body.T @ bf.R_world_body, np.eye(3), atol=1e-12)
+    assert abs(bf.height_m - perf.height_m) < 0.1 * perf.height_m
+    assert np.linalg.norm(bf.origin_m[:2] - perf.root_position_m[0, :2]) < 0.15
+    assert abs(bf.origin_m[2]) < 0.05  # on the floor
+
+
+def test_body_frame_rejects_what_is_not_a_person():
+    with pytest.raises(CalibrationError, match="at least 8"):
+        body_frame(np.zeros((5, 3)))
+    flat = np.random.default_rng(0).uniform(0, 1, (30, 3)) * [2, 2, 0.2]
+    with pytest.raises(CalibrationError, match="tall"):
+        body_frame(flat)
+
+
+@pytest.mark.parametrize("marker_set", MARKER_SETS)
+def test_is_tpose_on_tpose_frames_not_on_walking_frames(marker_set):
+    perf = perform(12, marker_set=marker_set, duration_s=5.0, heading_rad=0.7)
+    P = perf.recording.points_m
+    rate = perf.recording.rate_hz
+    assert all(is_tpose(P[f]) for f in range(0, perf.tpose_frames, 20))
+    walking = range(int(3.6 * rate), len(P), 20)  # arms are down from ~3 s, walking until ~6 s
+    assert not any(is_tpose(P[f]) for f in walking)
+    assert not is_tpose(P[0, :5])  # too few markers is "no", not an error
+
+
+CMU41_ASSIGNMENT = pytest.mark.xfail(strict=True, reason=(
+    "calibrate puts 22-25 % of cmu41 markers on a neighbouring segment, on every seed: L/RSHO and L/RUPA on "
+    "torso (the torso capsule, radius 0.085 H around the shoulder line, swallows the upper arm), L/RFWT and "
+    "L/RBWT on abdomen, C7 on head, L/RANK on foot"))
+
+
+@pytest.mark.parametrize("marker_set, seed", [
+    pytest.param("cmu41", 12, marks=CMU41_ASSIGNMENT), pytest.param("cmu41", 13, marks=CMU41_ASSIGNMENT),
+    ("gt53", 12), ("gt53", 13),
+])
+def test_calibrate_assigns_markers_to_their_true_segments(marker_set, seed):
+    perf = perform(seed, marker_set=marker_set, duration_s=0.1, heading_rad=-1.0)
+    got, truth = _assignment(perf)
+    agree = np.mean([g == t for g, t in zip(got, truth)])
+    assert agree >= 0.8, [(n, g, t) for n, g, t in zip(perf.marker_names, got, truth) if g != t]
+
+
+def _assignment(perf):
+    """(calibrated segment names, true segment names) of every marker; hand markers ride on the forearm in
+    both. Also checks the calibration pose is the model's zero pose (FK reproduces the markers)."""
+    P = perf.recording.points_m[0]
+    seg, marker_offsets, joint_offsets, t_root, R = calibrate(P)
+    m = len(P)
+    assert seg.shape == (m,) and marker_offsets.shape == (m, 3)
+    assert joint_offsets.shape == (N_SEGMENTS, 3) and R.shape == (N_SEGMENTS, 3, 3) and t_root.shape == (3,)
+    from service.solver import PoseSolver
+
+    pred = PoseSolver(96).predict(t_root, R, joint_offsets, seg, marker_offsets)
+    np.testing.assert_allclose(pred, P, atol=1e-9)
+    assert np.linalg.norm(t_root - perf.root_position_m[0]) < 0.1
+    return [SEGMENTS[i] for i in seg], [SEGMENTS[i] for i in perf.marker_segment]
+
+
+@pytest.mark.parametrize("marker_set", MARKER_SETS)
+@pytest.mark.parametrize("seed", [12, 13])
+def test_calibrate_keeps_sides_and_limbs(marker_set, seed):
+    """Weaker than the 80 % above but must hold today: no marker on the other side, and every marker that
+    sits mid-limb or on the head (not near a joint) on its own segment."""
+    perf = perform(seed, marker_set=marker_set, duration_s=0.1, heading_rad=2.0)
+    got, truth = _assignment(perf)
+    for name, g, t in zip(perf.marker_names, got, truth):
+        assert g[:2] == t[:2] or "_" not in g or "_" not in t, (name, g, t)
+        if name[1:] in ("FRM", "WRA", "WRB", "FIN", "THI", "KNE", "SHN", "TOE", "HEE", "FHD", "BHD", "OWR", "IWR"):
+            assert g == t, (name, g, t)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "body_frame flips forward for performer seed 14 (cmu41, any heading): the sign test 'feet ahead of shanks' "
+    "averages x of markers below 0.12 H (ANK, HEE, TOE, MT5: 0.049 m) against 0.12-0.3 H (only the two SHN "
+    "markers, which sit on the front of the shin: 0.054 m), so left and right swap and calibrate puts 80 % "
+    "of the markers on the wrong side"))
+def test_body_frame_forward_does_not_depend_on_shin_markers():
+    perf = perform(14, marker_set="cmu41", duration_s=0.1, heading_rad=-1.0)
+    forward = body_frame(perf.recording.points_m[0]).R_world_body[:, 0]
+    assert forward @ [np.cos(-1.0), np.sin(-1.0), 0.0] > np.cos(np.radians(10))
+
+
+def test_fill_reference_moves_unseen_markers_in_from_other_frames():
+    perf = perform(15, duration_s=1.0)
+    hist = perf.recording.points_m[:10].copy()
+    hist[5, 7] = np.nan
+    hist[:, :2] = np.nan  # markers 0 and 1 never seen
+    hist[[0, 1, 2, 3, 4, 6, 7, 8, 9], 20:23] = np.nan  # frame 5 has the most markers
+    ref = fill_reference(hist)
+    seen = np.isfinite(hist[5, :, 0])
+    np.testing.assert_array_equal(ref[seen], hist[5, seen])  # the reference frame is frame 5 ...
+    # ... and marker 7, hidden there, comes from a neighbouring frame, moved by the cloud's shift
+    np.testing.assert_allclose(ref[7], perf.recording.points_m[5, 7], atol=0.005)
+    assert np.all(np.isnan(ref[:2]))  # markers never seen stay unseen
+
+
+def test_detect_tpose_finds_two_performers_standing_apart():
+    rec, perfs = multi_perform([16, 17], spacing_m=2.5, duration_s=0.5, marker_set="cmu41")
+    points = rec.points_m[0]
+    groups = detect_tpose(points, np.ones(len(points), bool))
+    assert len(groups) == 2
+    n0 = len(perfs[0].marker_names)
+    members = sorted(tuple(sorted(g.tolist())) for g in groups)
+    assert members == [tuple(range(n0)), tuple(range(n0, len(points)))]
+    # points claimed by a tracked subject are not offered again
+    free = np.ones(len(points), bool)
+    free[:n0] = False
+    again = detect_tpose(points, free)
+    assert len(again) == 1 and sorted(again[0].tolist()) == list(range(n0, len(points)))
+
+
+def test_detect_tpose_finds_nothing_in_empty_or_ghost_clouds():
+    assert detect_tpose(np.zeros((0, 3)), np.zeros(0, bool)) == []
+    rng = np.random.default_rng(18)
+    ghosts = rng.uniform([-4, -4, 0], [4, 4, 2.5], (60, 3))
+    assert detect_tpose(ghosts, np.ones(60, bool)) == []
+    # a dense blob of ghosts is one cluster, but no person in a T-pose
+    blob = rng.normal([0, 0, 1.0], 0.3, (40, 3))
+    assert len(clusters(blob)) == 1
+    assert detect_tpose(blob, np.ones(40, bool)) == []
+    # a walking person is a cluster too, but no T-pose
+    perf = perform(19, duration_s=4.5)
+    walking = perf.recording.points_m[int(4.0 * 120)]
+    assert detect_tpose(walking, np.ones(len(walking), bool)) == []
