@@ -80,6 +80,7 @@ class _Subject:
     state: tracker.TrackState
     history: collections.deque  # of (M, 3) labeled positions, NaN = unlabeled
     next_calibration_frame: int = 0
+    pose_cache: tuple | None = None  # (R_parent_segment it was made from, quaternions, joint angles)
 
 
 @dataclasses.dataclass
@@ -343,6 +344,14 @@ class Engine:
         idx[ok] = keep[res.point_index[ok]]  # back to the frame's own indexing (non-finite points dropped)
         positions = tracker._gather(pts, idx).astype(np.float32)
         st = s.state
+        # quaternions and angles change only when a solve ran: convert once per solve, not per frame
+        if s.pose_cache is None or s.pose_cache[0] is not st.R_parent_segment:
+            s.pose_cache = (
+                st.R_parent_segment,
+                matrix_to_quat_xyzw(st.R_parent_segment).astype(np.float32),
+                joint_angles(st.R_parent_segment).astype(np.float32),
+            )
+        _, quats, angles = s.pose_cache
         return SubjectOutput(
             subject=s.model.name,
             stream=s.stream,
@@ -356,8 +365,8 @@ class Engine:
             iterations=res.iterations,
             residual_m=res.residual_m,
             root_position_m=np.asarray(st.t_root_m, np.float32),
-            rotations_xyzw=matrix_to_quat_xyzw(st.R_parent_segment).astype(np.float32),
-            joint_angles_rad=joint_angles(st.R_parent_segment).astype(np.float32),
+            rotations_xyzw=quats,
+            joint_angles_rad=angles,
             has_pose=s.model.has_skeleton,
         )
 

@@ -24,6 +24,7 @@ from service.kinematics import marker_positions, rotvec_to_matrix, segment_trans
 
 jax.config.update("jax_enable_x64", True)  # float64: the normal equations square the conditioning
 
+DTYPE = np.float64
 N_PARAMS = 3 + 3 * N_SEGMENTS  # 45: root translation + one rotation vector per segment
 
 
@@ -83,7 +84,7 @@ class PoseSolver:
         self.prior_w = np.concatenate([np.full(3, 0.2 * prior_weight), np.full(3 * N_SEGMENTS, prior_weight)])
 
     def pad(self, a: np.ndarray, fill=0.0) -> np.ndarray:
-        out = np.full((self.max_markers,) + a.shape[1:], fill, dtype=np.float64 if a.dtype.kind == "f" else a.dtype)
+        out = np.full((self.max_markers,) + a.shape[1:], fill, dtype=DTYPE if a.dtype.kind == "f" else a.dtype)
         out[: len(a)] = a
         return out
 
@@ -103,14 +104,14 @@ class PoseSolver:
         if weight is None:
             weight = np.ones(m)
         t, R, pred, rms, steps, ok = _solve(
-            np.asarray(t0_m, np.float64),
-            np.asarray(R0_parent_segment, np.float64),
-            np.asarray(joint_offsets_m, np.float64),
+            np.asarray(t0_m, DTYPE),
+            np.asarray(R0_parent_segment, DTYPE),
+            np.asarray(joint_offsets_m, DTYPE),
             self.pad(np.asarray(marker_segment, np.int32)),
-            self.pad(np.asarray(marker_offsets_m, np.float64)),
-            self.pad(np.nan_to_num(np.asarray(observed_m, np.float64))),
+            self.pad(np.asarray(marker_offsets_m, DTYPE)),
+            self.pad(np.nan_to_num(np.asarray(observed_m, DTYPE))),
             self.pad(np.asarray(mask, bool), False),
-            self.pad(np.asarray(weight, np.float64)),
+            self.pad(np.asarray(weight, DTYPE)),
             self.prior_w,
             self.rtol,
             max_steps=self.max_steps,
@@ -129,11 +130,11 @@ class PoseSolver:
         """(M, 3) marker positions of a pose, through the same compiled FK."""
         m = len(marker_segment)
         pred, _, _ = _predict(
-            np.asarray(t_m, np.float64),
-            np.asarray(R_parent_segment, np.float64),
-            np.asarray(joint_offsets_m, np.float64),
+            np.asarray(t_m, DTYPE),
+            np.asarray(R_parent_segment, DTYPE),
+            np.asarray(joint_offsets_m, DTYPE),
             self.pad(np.asarray(marker_segment, np.int32)),
-            self.pad(np.asarray(marker_offsets_m, np.float64)),
+            self.pad(np.asarray(marker_offsets_m, DTYPE)),
         )
         return np.asarray(pred)[:m]
 

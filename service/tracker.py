@@ -27,6 +27,8 @@ from scipy.optimize import linear_sum_assignment
 from service.config import EngineConfig
 
 N_PARTNERS = 8
+DIST_TOL_M = 0.02  # a label whose partner distances stray more than this (+3 sigma) from the norm is withdrawn
+FAST_STEP_M = 0.012  # markers moving more than this per frame are predicted by their group's rigid motion
 MAX_SPEED_M_S = 15.0  # markers never move faster; caps velocities estimated from bad predictions
 _BIG = 1e9
 
@@ -52,6 +54,8 @@ class TrackState:
     """Everything that changes frame to frame for one subject (owned by the engine's registry)."""
 
     pos_m: np.ndarray  # (M, 3) last observed or predicted position
+    prev_pos_m: np.ndarray  # (M, 3) the same one frame earlier
+    prev_labeled: np.ndarray  # (M,) bool, labeled one frame earlier
     vel_m_s: np.ndarray  # (M, 3)
     labeled: np.ndarray  # (M,) bool, labeled in the last processed frame
     ever_seen: np.ndarray  # (M,) bool
@@ -65,6 +69,7 @@ class TrackState:
     # skeleton
     t_root_m: np.ndarray  # (3,)
     R_parent_segment: np.ndarray  # (14, 3, 3)
+    last_dt_s: float = 0.0  # frame interval before the last frame
     skipped: int = 0  # solves skipped in a row
     frames: int = 0
     last_labeled_t_ns: int = 0
@@ -87,6 +92,8 @@ def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m
     seen = np.isfinite(positions_m[:, 0])
     st = TrackState(
         pos_m=np.where(seen[:, None], positions_m, 0.0),
+        prev_pos_m=np.zeros((m, 3)),
+        prev_labeled=np.zeros(m, bool),
         vel_m_s=np.zeros((m, 3)),
         labeled=seen.copy(),
         ever_seen=seen.copy(),
@@ -158,6 +165,50 @@ def _snapshot(st: TrackState, pos: np.ndarray, labeled: np.ndarray) -> None:
     st.snap_m[idx] = np.where(labeled[:, None], pos, np.nan)[None]
 
 
+def _kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray, wt: np.ndarray):
+    """Batched weighted Kabsch: the rotations R (B, 3, 3) and centroids cs, cd (B, 3) with
+    dst ~ R (src - cs) + cd, fitted over points where w (B, K) is True with weights wt; also the weighted
+    RMS misfit (B,). Hand-written and batched: one (B, 3, 3) SVD is ~20x faster than a loop of small ones."""
+    wf = np.where(w, wt, 0.0)[..., None]
+    wsum = wf.sum(1)
+    src, dst = np.where(w[..., None], src, 0.0), np.where(w[..., None], dst, 0.0)
+    cs = (src * wf).sum(1) / wsum
+    cd = (dst * wf).sum(1) / wsum
+    a, b = (src - cs[:, None]) * w[..., None], (dst - cd[:, None]) * wf
+    U, _, Vt = np.linalg.svd(np.einsum("rki,rkj->rij", a, b))
+    d = np.sign(np.linalg.det(np.einsum("rji,rkj->rik", Vt, U)))
+    D = np.ones((len(src), 3))
+    D[:, 2] = np.where(d == 0, 1.0, d)
+    R = np.einsum("rji,rj,rkj->rik", Vt, D, U)  # V diag(D) U^T
+    fitted = np.einsum("rij,rkj->rki", R, a) + cd[:, None]
+    res = np.where(w, np.sum((fitted - dst) ** 2, axis=2), 0.0) * wf[..., 0]
+    return R, cs, cd, np.sqrt(res.sum(1) / wsum[:, 0])
+
+
+def rigid_motion_predictions(st: TrackState, which: np.ndarray) -> np.ndarray:
+    """Predict markers `which` (labeled in the last two frames) by repeating the rigid motion their partner
+    group made from the frame before last to the last one (constant screw motion). For a limb swinging
+    fast, linear extrapolation misses the arc by r * w^2 * dt^2 (8 cm for a serve at 50 Hz); this does not.
+    NaN where fewer than 3 of the group were labeled in both frames."""
+    m = len(st.pos_m)
+    pred = np.full((m, 3), np.nan)
+    rows = np.flatnonzero(which)
+    if len(rows) == 0:
+        return pred
+    group = np.concatenate([rows[:, None], st.partners[rows]], axis=1)  # the marker itself and partners
+    gk = np.maximum(group, 0)
+    both = st.labeled & st.prev_labeled
+    w = (group >= 0) & both[gk]
+    ok = w.sum(1) >= 3
+    if not ok.any():
+        return pred
+    rows, gk, w = rows[ok], gk[ok], w[ok]
+    sigma = np.sqrt(st.dist_var_m2[rows[:, None], gk])
+    R, cs, cd, _ = _kabsch(st.prev_pos_m[gk], st.pos_m[gk], w, w / (sigma + 0.003) ** 2)
+    pred[rows] = np.einsum("rij,rj->ri", R, st.pos_m[rows] - cs) + cd
+    return pred
+
+
 def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, which: np.ndarray):
     """Predict markers `which` from their rigid partners labeled now (`pos`, NaN elsewhere).
 
@@ -172,6 +223,23 @@ def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, whic
     rows = np.flatnonzero(which)
     if len(rows) == 0:
         return pred, spread
+    part = st.partners[rows]  # (R, K)
+    pk = np.maximum(part, 0)
+    src = st.snap_m[rows[:, None], pk]  # (R, K, 3) partner positions when marker was last seen
+    self_src = st.snap_m[rows, rows]  # (R, 3)
+    dst = pos[pk]  # (R, K, 3)
+    w = (part >= 0) & labeled[pk] & np.isfinite(src[..., 0]) & np.isfinite(self_src[:, :1])
+    n = w.sum(1)
+    ok = n >= 3
+    if not ok.any():
+        return pred, spread
+    rows, part, src, dst, w, self_src, n = rows[ok], pk[ok], src[ok], dst[ok], w[ok], self_src[ok], n[ok]
+    # partners weighted by how rigidly they keep their distance to the marker (sigma + 3 mm of skin)
+    sigma = np.sqrt(st.dist_var_m2[rows[:, None], part])
+    R, cs, cd, sp = _kabsch(src, dst, w, w / (sigma + 0.003) ** 2)
+    spread[rows] = sp
+    pred[rows] = np.einsum("rij,rj->ri", R, self_src - cs) + cd
+    return pred, spread
     part = st.partners[rows]  # (R, K)
     pk = np.maximum(part, 0)
     src = st.snap_m[rows[:, None], pk]  # (R, K, 3) partner positions when marker was last seen
@@ -202,6 +270,27 @@ def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, whic
     spread[rows] = np.sqrt(res.sum(1) / wsum[:, 0])
     pred[rows] = np.einsum("rij,rj->ri", R, self_src - cs) + cd
     return pred, spread
+
+
+def distance_misfit(st: TrackState, cur: np.ndarray, labeled: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How far each labeled marker's distances to its labeled partners stray from their long-run means:
+    the median |d - mean| [m] (robust to one wrong partner) and the tolerance it is held to (2 cm plus
+    three times the partners' typical spread). Unlike the rigid prediction, which follows the last frames,
+    this remembers the body, so a wrong label cannot become its own reference. NaN with < 2 partners."""
+    m = len(cur)
+    part = st.partners
+    pk = np.maximum(part, 0)
+    valid = (part >= 0) & labeled[pk] & labeled[:, None] & (st.dist_n[np.arange(m)[:, None], pk] >= 10)
+    d = np.linalg.norm(np.nan_to_num(cur)[:, None, :] - np.nan_to_num(cur)[pk], axis=2)
+    e = np.where(valid, np.abs(d - st.dist_mean_m[np.arange(m)[:, None], pk]), np.inf)
+    n = valid.sum(1)
+    e.sort(axis=1)
+    mid = np.take_along_axis(e, np.maximum((n - 1) // 2, 0)[:, None], axis=1)[:, 0]
+    sig = np.where(valid, np.sqrt(st.dist_var_m2[np.arange(m)[:, None], pk]), np.inf)
+    sig.sort(axis=1)
+    sig_mid = np.take_along_axis(sig, np.maximum((n - 1) // 2, 0)[:, None], axis=1)[:, 0]
+    ok = n >= 2
+    return np.where(ok, mid, np.nan), np.where(ok, DIST_TOL_M + 3.0 * sig_mid, np.nan)
 
 
 def _gather(points: np.ndarray, point_index: np.ndarray) -> np.ndarray:
@@ -268,6 +357,11 @@ def step(
     # 1. NNT: constant-velocity prediction of markers labeled last frame.
     pred_track = st.pos_m + st.vel_m_s * dt
     speed = np.linalg.norm(st.vel_m_s, axis=1)
+    fast = st.labeled & (speed * dt > FAST_STEP_M) & (abs(dt - st.last_dt_s) < 0.25 * dt)
+    if fast.any():
+        arc = rigid_motion_predictions(st, fast)
+        ok = np.isfinite(arc[:, 0])
+        pred_track[ok] = arc[ok]
     gates = np.where(st.labeled, config.nnt_gate_m + 0.35 * speed * dt, 0.0)
     rows, cols = _assign(pred_track, gates, points, ~taken)
     point_index[rows] = cols
@@ -327,6 +421,11 @@ def step(
     rows, cols = _assign(pred_missing, gate_missing, points, ~taken)
     if len(rows):
         point_index[rows] = cols
+        cur = _gather(points, point_index)
+        misfit, mtol = distance_misfit(st, cur, point_index >= 0)
+        wrong = misfit[rows] > mtol[rows]
+        point_index[rows[wrong]] = -1
+        rows, cols = rows[~wrong], cols[~wrong]
         taken[cols] = True
         labeled = point_index >= 0
         cur = _gather(points, point_index)
@@ -396,14 +495,17 @@ def _commit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, fallback: np.n
     new_vel *= np.minimum(1.0, MAX_SPEED_M_S / np.maximum(speed, 1e-9))
     # light smoothing against noise, not so much that fast markers lag
     st.vel_m_s = np.where(both[:, None], 0.7 * new_vel + 0.3 * st.vel_m_s, new_vel)
+    st.prev_pos_m, st.prev_labeled = st.pos_m, st.labeled
     st.pos_m = np.where(labeled[:, None], cur, fallback)
     st.labeled = labeled
     st.ever_seen |= labeled
+    st.last_dt_s = dt
     st.last_t_ns = t_ns
     st.frames += 1
     if labeled.any():
         st.last_labeled_t_ns = t_ns
-    _update_distances(st, cur, labeled)
+    if st.frames % 2 == 0:  # the statistics move slowly: every other frame halves their O(M^2) cost
+        _update_distances(st, cur, labeled)
     if st.frames % 30 == 0:
         _update_partners(st)
     _snapshot(st, cur, labeled)
