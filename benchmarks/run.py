@@ -58,7 +58,7 @@ MIN_TRUE_MARKERS = 4
 QUICK_FILES = ("cmu/135_02.c3d", "hdm05/HDM_mm_01-02_03_120.c3d")
 QUICK_LEVELS = ("L0", "L2")
 QUICK_MAX_S = 8.0
-FULL_MAX_S = 30.0
+FULL_MAX_S = 25.0
 CORRUPTION_SEED = 1
 STREAM = "default"
 # Single-threaded XLA per worker: two workers on two cores; intra-op threads would only contend.
@@ -337,7 +337,9 @@ def worst_runs(results: list[JobResult], n: int = 12) -> list[JobResult]:
 def worst_markers_lines(results: list[JobResult]) -> list[str]:
     lines = ["| file | level | mode | accuracy | worst markers (wrong / unlabeled frames) |", "|---|---|---|---|---|"]
     for r in worst_runs(results):
-        markers = ", ".join(f"{name.rpartition(':')[2]} ({w}/{u})" for name, w, u in r.score.worst_markers(4))
+        one_subject = len({n.rpartition(":")[0] for n in r.score.marker_names}) == 1
+        markers = ", ".join(f"{name.rpartition(':')[2] if one_subject else name} ({w}/{u})"
+                            for name, w, u in r.score.worst_markers(4))
         lines.append(f"| {r.job.file} | {r.job.level} | {r.job.mode} | {_pct(r.score.accuracy)} | {markers} |")
     return lines
 

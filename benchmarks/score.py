@@ -27,7 +27,7 @@ MODES = ("seeded", "tpose")
 ABSENT, CORRECT, UNLABELED, WRONG = 0, 1, 2, 3
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)  # array fields: a generated == would raise
 class Score:
     """The figures of one run, plus where the errors were, so failures can be looked at."""
 

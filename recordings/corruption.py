@@ -58,7 +58,7 @@ CLUSTER_NEIGHBOURS = 3
 CLUSTER_DURATION_S = (0.3, 1.5)
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)  # array fields: a generated == would raise
 class CorruptedSequence:
     """What a labeler sees (points_m) and what the scorer knows (truth), frame by frame."""
 

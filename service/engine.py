@@ -18,6 +18,8 @@ import numpy as np
 
 from protocol.skeleton import PARENTS, SEGMENTS
 from recordings.recording import split_label
+from scipy.optimize import linear_sum_assignment
+
 from service import calibration, tracker
 from service.config import EngineConfig
 from service.kinematics import joint_angles, matrix_to_quat_xyzw
@@ -71,6 +73,7 @@ class EngineError(ValueError):
 
 
 HISTORY_FRAMES = 240  # labeled frames kept per subject for (re)calibration
+DISCOVER_FRAMES = 60  # frames an unexplained point must ride on an automatic subject to become a marker
 
 
 @dataclasses.dataclass
@@ -81,6 +84,8 @@ class _Subject:
     history: collections.deque  # of (M, 3) labeled positions, NaN = unlabeled
     next_calibration_frame: int = 0
     pose_cache: tuple | None = None  # (R_parent_segment it was made from, quaternions, joint angles)
+    auto: bool = False  # created from a T-pose: its markers are its own, and it may discover more
+    candidates: list = dataclasses.field(default_factory=list)  # unexplained point tracks: [last frame, positions]
 
 
 @dataclasses.dataclass
@@ -219,6 +224,10 @@ class Engine:
             free[res.point_index[res.point_index >= 0]] = False
             s.history.append(tracker._gather(points, res.point_index))
             outputs.append(self._output(s, frame, res, keep))
+        if labels is None:
+            for name in order:
+                if self._subjects[name].auto:
+                    self._discover(self._subjects[name], frame, points, free)
         if self.config.tpose_auto and labels is None:
             new_subjects += self._find_tposes(frame, points, free)
         n_labeled = int(sum(int((o.point_index >= 0).sum()) for o in outputs))
@@ -292,8 +301,6 @@ class Engine:
         idx = np.flatnonzero(free)
         if len(idx):
             d = np.linalg.norm(last[:, None] - points[idx][None], axis=2)
-            from scipy.optimize import linear_sum_assignment
-
             cost = np.where(d < 0.02, d, 1e6)
             r, c = linear_sum_assignment(cost)
             ok = cost[r, c] < 1e6
@@ -331,11 +338,98 @@ class Engine:
         cur = hist[-1]
         st = tracker.new_state(model, np.where(np.isfinite(cur[:, :1]), cur, ref), frame.t_ns, hist)
         st.labeled = np.isfinite(cur[:, 0])
-        s = _Subject(frame.stream, model, st, collections.deque(list(hist), maxlen=HISTORY_FRAMES))
+        s = _Subject(frame.stream, model, st, collections.deque(list(hist), maxlen=HISTORY_FRAMES), auto=True)
         self._subjects[name] = s
         self._maybe_calibrate(s, frame)
         created.append(name)
         return created
+
+    def _discover(self, s: _Subject, frame, points, free) -> None:
+        """Markers hidden while a subject stood in its T-pose join it later: an unclaimed point that stays
+        near the subject for DISCOVER_FRAMES frames, keeping its distances to the subject's nearest markers
+        (it rides on the body: a ghost drifts, and lives 0.08 s on average), becomes a new marker."""
+        st = s.state
+        if not st.labeled.any() or len(s.model.markers) >= self.config.max_markers:
+            s.candidates.clear()
+            return
+        body = st.pos_m[st.labeled]
+        idx = np.flatnonzero(free)
+        if len(idx):
+            near = np.min(np.linalg.norm(points[idx, None] - body[None], axis=2), axis=1) < 0.25
+            idx = idx[near]
+        f = st.frames
+        cands = [c for c in s.candidates if f - c[0] <= 3]  # a track may miss up to 3 frames
+        used = np.zeros(len(idx), bool)
+        if cands and len(idx):
+            last = np.array([c[1][-1][1] for c in cands])
+            d = np.linalg.norm(last[:, None] - points[idx][None], axis=2)
+            r, c = linear_sum_assignment(np.where(d < 0.04, d, 1e6))
+            for ri, ci in zip(r, c):
+                if d[ri, ci] < 0.04:
+                    cands[ri][0] = f
+                    cands[ri][1].append((f, points[idx[ci]], st.pos_m.copy(), st.labeled.copy()))
+                    used[ci] = True
+        for ci in np.flatnonzero(~used):
+            cands.append([f, [(f, points[idx[ci]], st.pos_m.copy(), st.labeled.copy())]])
+        s.candidates = cands
+        for c in cands:
+            track = c[1]
+            if len(track) < DISCOVER_FRAMES:
+                continue
+            if self._rides_on_body(track):
+                self._add_marker(s, frame, track)
+                s.candidates = []  # their snapshots have the old marker count
+                return
+            del track[: len(track) - DISCOVER_FRAMES]  # keep testing the most recent window
+
+    @staticmethod
+    def _rides_on_body(track) -> bool:
+        """The track keeps its distance to its 3 nearest subject markers within 8 mm over the window."""
+        _, p0, pos0, lab0 = track[0]
+        _, p1, pos1, lab1 = track[-1]
+        both = np.flatnonzero(lab0 & lab1)
+        if len(both) < 3:
+            return False
+        near = both[np.argsort(np.linalg.norm(pos0[both] - p0, axis=1))[:3]]
+        spread = []
+        for _, p, pos, lab in track:
+            ok = lab[near]
+            if ok.sum() == 3:
+                spread.append(np.linalg.norm(pos[near] - p, axis=1))
+        if len(spread) < 0.7 * len(track):
+            return False
+        return bool(np.all(np.std(np.array(spread), axis=0) < 0.008))
+
+    def _add_marker(self, s: _Subject, frame, track) -> None:
+        """Grow an automatic subject by one marker (its own next id), keeping the tracking state."""
+        m_old = len(s.model.markers)
+        name = f"M{m_old:02d}"
+        while name in s.model.markers:
+            name = name + "b"
+        markers = s.model.markers + (name,)
+        hist = collections.deque(maxlen=HISTORY_FRAMES)
+        recent = {f: p for f, p, _, _ in track}
+        f0 = s.state.frames - len(s.history) + 1
+        for k, h in enumerate(s.history):
+            p = recent.get(f0 + k)
+            hist.append(np.concatenate([h, (p if p is not None else np.full(3, np.nan))[None]]))
+        seg = np.append(s.model.marker_segment, 0)
+        off = np.vstack([s.model.marker_offsets_m, np.zeros(3)])
+        if s.model.has_skeleton:  # ride on the segment of the nearest marker, at its current offset
+            Rs, ps = _world_transforms(s.state.t_root_m, s.state.R_parent_segment, s.model.joint_offsets_m)
+            p_new = track[-1][1]
+            near = int(np.argmin(np.linalg.norm(s.state.pos_m - p_new, axis=1)))
+            seg[-1] = s.model.marker_segment[near]
+            off[-1] = Rs[seg[-1]].T @ (p_new - ps[seg[-1]])
+        model = dataclasses.replace(s.model, markers=markers, marker_segment=seg, marker_offsets_m=off)
+        old = s.state
+        cur = np.vstack([np.where(old.labeled[:, None], old.pos_m, np.nan), track[-1][1][None]])
+        st = tracker.new_state(model, cur, frame.t_ns, np.stack(hist))
+        st.t_root_m, st.R_parent_segment = old.t_root_m, old.R_parent_segment
+        st.frames, st.last_labeled_t_ns = old.frames, old.last_labeled_t_ns
+        st.labeled = np.isfinite(cur[:, 0])
+        s.model, s.state = model, st
+        s.history = hist
 
     def _output(self, s: _Subject, frame, res: tracker.StepResult, keep) -> SubjectOutput:
         pts = np.asarray(frame.points_m, np.float64).reshape(-1, 3)
@@ -369,6 +463,18 @@ class Engine:
             joint_angles_rad=angles,
             has_pose=s.model.has_skeleton,
         )
+
+
+def _world_transforms(t_root, R_parent_segment, joint_offsets):
+    """World rotations (14, 3, 3) and origins (14, 3) of the segments (numpy, off the hot path)."""
+    Rs = np.empty((len(PARENTS), 3, 3))
+    ps = np.empty((len(PARENTS), 3))
+    for i, p in enumerate(PARENTS):
+        if p < 0:
+            Rs[i], ps[i] = R_parent_segment[i], t_root
+        else:
+            Rs[i], ps[i] = Rs[p] @ R_parent_segment[i], ps[p] + Rs[p] @ joint_offsets[i]
+    return Rs, ps
 
 
 def _positions(markers, marks: dict, points: np.ndarray) -> np.ndarray:

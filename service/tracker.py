@@ -28,7 +28,6 @@ from service.config import EngineConfig
 
 N_PARTNERS = 8
 DIST_TOL_M = 0.02  # a label whose partner distances stray more than this (+3 sigma) from the norm is withdrawn
-FAST_STEP_M = 0.012  # markers moving more than this per frame are predicted by their group's rigid motion
 MAX_SPEED_M_S = 15.0  # markers never move faster; caps velocities estimated from bad predictions
 _BIG = 1e9
 
@@ -54,8 +53,6 @@ class TrackState:
     """Everything that changes frame to frame for one subject (owned by the engine's registry)."""
 
     pos_m: np.ndarray  # (M, 3) last observed or predicted position
-    prev_pos_m: np.ndarray  # (M, 3) the same one frame earlier
-    prev_labeled: np.ndarray  # (M,) bool, labeled one frame earlier
     vel_m_s: np.ndarray  # (M, 3)
     labeled: np.ndarray  # (M,) bool, labeled in the last processed frame
     ever_seen: np.ndarray  # (M,) bool
@@ -69,7 +66,6 @@ class TrackState:
     # skeleton
     t_root_m: np.ndarray  # (3,)
     R_parent_segment: np.ndarray  # (14, 3, 3)
-    last_dt_s: float = 0.0  # frame interval before the last frame
     skipped: int = 0  # solves skipped in a row
     frames: int = 0
     last_labeled_t_ns: int = 0
@@ -92,8 +88,6 @@ def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m
     seen = np.isfinite(positions_m[:, 0])
     st = TrackState(
         pos_m=np.where(seen[:, None], positions_m, 0.0),
-        prev_pos_m=np.zeros((m, 3)),
-        prev_labeled=np.zeros(m, bool),
         vel_m_s=np.zeros((m, 3)),
         labeled=seen.copy(),
         ever_seen=seen.copy(),
@@ -183,30 +177,6 @@ def _kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray, wt: np.ndarray):
     fitted = np.einsum("rij,rkj->rki", R, a) + cd[:, None]
     res = np.where(w, np.sum((fitted - dst) ** 2, axis=2), 0.0) * wf[..., 0]
     return R, cs, cd, np.sqrt(res.sum(1) / wsum[:, 0])
-
-
-def rigid_motion_predictions(st: TrackState, which: np.ndarray) -> np.ndarray:
-    """Predict markers `which` (labeled in the last two frames) by repeating the rigid motion their partner
-    group made from the frame before last to the last one (constant screw motion). For a limb swinging
-    fast, linear extrapolation misses the arc by r * w^2 * dt^2 (8 cm for a serve at 50 Hz); this does not.
-    NaN where fewer than 3 of the group were labeled in both frames."""
-    m = len(st.pos_m)
-    pred = np.full((m, 3), np.nan)
-    rows = np.flatnonzero(which)
-    if len(rows) == 0:
-        return pred
-    group = np.concatenate([rows[:, None], st.partners[rows]], axis=1)  # the marker itself and partners
-    gk = np.maximum(group, 0)
-    both = st.labeled & st.prev_labeled
-    w = (group >= 0) & both[gk]
-    ok = w.sum(1) >= 3
-    if not ok.any():
-        return pred
-    rows, gk, w = rows[ok], gk[ok], w[ok]
-    sigma = np.sqrt(st.dist_var_m2[rows[:, None], gk])
-    R, cs, cd, _ = _kabsch(st.prev_pos_m[gk], st.pos_m[gk], w, w / (sigma + 0.003) ** 2)
-    pred[rows] = np.einsum("rij,rj->ri", R, st.pos_m[rows] - cs) + cd
-    return pred
 
 
 def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, which: np.ndarray):
@@ -357,11 +327,6 @@ def step(
     # 1. NNT: constant-velocity prediction of markers labeled last frame.
     pred_track = st.pos_m + st.vel_m_s * dt
     speed = np.linalg.norm(st.vel_m_s, axis=1)
-    fast = st.labeled & (speed * dt > FAST_STEP_M) & (abs(dt - st.last_dt_s) < 0.25 * dt)
-    if fast.any():
-        arc = rigid_motion_predictions(st, fast)
-        ok = np.isfinite(arc[:, 0])
-        pred_track[ok] = arc[ok]
     gates = np.where(st.labeled, config.nnt_gate_m + 0.35 * speed * dt, 0.0)
     rows, cols = _assign(pred_track, gates, points, ~taken)
     point_index[rows] = cols
@@ -495,11 +460,9 @@ def _commit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, fallback: np.n
     new_vel *= np.minimum(1.0, MAX_SPEED_M_S / np.maximum(speed, 1e-9))
     # light smoothing against noise, not so much that fast markers lag
     st.vel_m_s = np.where(both[:, None], 0.7 * new_vel + 0.3 * st.vel_m_s, new_vel)
-    st.prev_pos_m, st.prev_labeled = st.pos_m, st.labeled
     st.pos_m = np.where(labeled[:, None], cur, fallback)
     st.labeled = labeled
     st.ever_seen |= labeled
-    st.last_dt_s = dt
     st.last_t_ns = t_ns
     st.frames += 1
     if labeled.any():
