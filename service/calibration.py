@@ -26,7 +26,7 @@ S = {name: i for i, name in enumerate(SEGMENTS)}
 
 # Anthropometric fractions of standing height (after Winter, Biomechanics of Human Movement, tab. 4.1).
 _HIP_Z, _HIP_Y = 0.51, 0.085
-_LUMBAR_Z, _THORACIC_Z, _NECK_Z = 0.60, 0.70, 0.83
+_LUMBAR_Z, _THORACIC_Z, _NECK_Z = 0.63, 0.72, 0.845
 _SHOULDER_Z, _SHOULDER_Y = 0.815, 0.125
 _UPPERARM, _FOREARM_HAND = 0.186, 0.25
 _KNEE_Z, _ANKLE_Z = 0.285, 0.045
@@ -65,10 +65,16 @@ def body_frame(P: np.ndarray) -> BodyFrame:
     w, V = np.linalg.eigh(np.cov((upper - c).T))
     lateral = V[:, 1]
     fwd = np.array([-lateral[1], lateral[0]])
-    feet, shanks = P[z < 0.12, :2], P[(z > 0.12) & (z < 0.3), :2]
-    if len(feet) == 0 or len(shanks) == 0:
-        raise CalibrationError("no feet/shank markers near the floor: the person is not standing")
-    if (feet.mean(0) - shanks.mean(0)) @ fwd < 0:
+    # Forward is where the toes point: on a foot the lowest markers (toe, metatarsals) lie ahead of the
+    # higher ones (heel, ankle). Shank markers are no guide: they sit on the front of the shin in some sets.
+    foot = z < 0.12
+    if foot.sum() < 2:
+        raise CalibrationError("no foot markers near the floor: the person is not standing")
+    fz = z[foot]
+    low = fz <= np.median(fz)
+    if low.all():
+        low = fz < fz.max()
+    if (P[foot][low, :2].mean(0) - P[foot][~low, :2].mean(0)) @ fwd < 0:
         fwd = -fwd
     forward = np.array([fwd[0], fwd[1], 0.0])
     up = np.array([0.0, 0.0, 1.0])
@@ -120,7 +126,8 @@ def calibrate(positions_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     tips["pelvis"], tips["abdomen"], tips["torso"], tips["head"] = J["abdomen"], J["torso"], J["head"], np.array([0.0, 0, 1.0])
     bones = {name: [(J[name], tips[name])] for name in SEGMENTS}
     bones["pelvis"].append((J["l_thigh"], J["r_thigh"]))
-    bones["torso"].append((J["l_upperarm"], J["r_upperarm"]))
+    # the shoulder girdle, short of the shoulder joints so upper-arm markers go to the arm
+    bones["torso"].append((J["l_upperarm"] * [1, 0.6, 1], J["r_upperarm"] * [1, 0.6, 1]))
     bones["l_foot"].append((J["l_foot"] - [0.04, 0, 0.03], tips["l_foot"]))
     bones["r_foot"].append((J["r_foot"] - [0.04, 0, 0.03], tips["r_foot"]))
     cost = np.full((len(Q), len(SEGMENTS)), np.inf)

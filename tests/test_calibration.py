@@ -50,14 +50,8 @@ def test_is_tpose_on_tpose_frames_not_on_walking_frames(marker_set):
     assert not is_tpose(P[0, :5])  # too few markers is "no", not an error
 
 
-CMU41_ASSIGNMENT = pytest.mark.xfail(strict=True, reason=(
-    "calibrate puts 22-25 % of cmu41 markers on a neighbouring segment, on every seed: L/RSHO and L/RUPA on "
-    "torso (the torso capsule, radius 0.085 H around the shoulder line, swallows the upper arm), L/RFWT and "
-    "L/RBWT on abdomen, C7 on head, L/RANK on foot"))
-
-
 @pytest.mark.parametrize("marker_set, seed", [
-    pytest.param("cmu41", 12, marks=CMU41_ASSIGNMENT), pytest.param("cmu41", 13, marks=CMU41_ASSIGNMENT),
+    ("cmu41", 12), ("cmu41", 13),
     ("gt53", 12), ("gt53", 13),
 ])
 def test_calibrate_assigns_markers_to_their_true_segments(marker_set, seed):
@@ -96,11 +90,6 @@ def test_calibrate_keeps_sides_and_limbs(marker_set, seed):
             assert g == t, (name, g, t)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "body_frame flips forward for performer seed 14 (cmu41, any heading): the sign test 'feet ahead of shanks' "
-    "averages x of markers below 0.12 H (ANK, HEE, TOE, MT5: 0.049 m) against 0.12-0.3 H (only the two SHN "
-    "markers, which sit on the front of the shin: 0.054 m), so left and right swap and calibrate puts 80 % "
-    "of the markers on the wrong side"))
 def test_body_frame_forward_does_not_depend_on_shin_markers():
     perf = perform(14, marker_set="cmu41", duration_s=0.1, heading_rad=-1.0)
     forward = body_frame(perf.recording.points_m[0]).R_world_body[:, 0]
