@@ -56,6 +56,7 @@ class SubjectOutput:
     rotations_xyzw: np.ndarray  # (14, 4) float32: root in world, others relative to parent
     joint_angles_rad: np.ndarray  # (13, 3) float32, protocol.skeleton.JOINT_ANGLE_CONVENTION
     has_pose: bool = True  # False until the subject's skeleton is calibrated: publish labels, no pose
+    source: np.ndarray | None = None  # (M,) int8: 0 unlabeled, 1 tracked (NNT), 2 re-acquired, 3 given label
 
 
 @dataclasses.dataclass(frozen=True)
@@ -462,6 +463,7 @@ class Engine:
             rotations_xyzw=quats,
             joint_angles_rad=angles,
             has_pose=s.model.has_skeleton,
+            source=res.source,
         )
 
 

@@ -27,6 +27,7 @@ from scipy.optimize import linear_sum_assignment
 from service.config import EngineConfig
 
 N_PARTNERS = 8
+PROBATION_FRAMES = 60  # frames a re-acquired label is re-checked against the partners' long-run distances
 DIST_TOL_M = 0.02  # a label whose partner distances stray more than this (+3 sigma) from the norm is withdrawn
 MAX_SPEED_M_S = 15.0  # markers never move faster; caps velocities estimated from bad predictions
 _BIG = 1e9
@@ -66,6 +67,7 @@ class TrackState:
     # skeleton
     t_root_m: np.ndarray  # (3,)
     R_parent_segment: np.ndarray  # (14, 3, 3)
+    provisional: np.ndarray | None = None  # (M,) int, frames left in which a re-acquired label is re-checked
     skipped: int = 0  # solves skipped in a row
     frames: int = 0
     last_labeled_t_ns: int = 0
@@ -79,6 +81,7 @@ class StepResult:
     solved: bool
     iterations: int
     residual_m: float
+    source: np.ndarray | None = None  # (M,) int8 per marker: 0 none, 1 tracked (NNT), 2 re-acquired, 3 given
 
 
 def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m: np.ndarray | None = None) -> TrackState:
@@ -345,6 +348,15 @@ def step(
     err = np.where(labeled & has_rigid, np.linalg.norm(np.nan_to_num(cur - rpred), axis=1), 0.0)
     tol = config.rigid_check_m + 4.0 * np.nan_to_num(spread)
     bad = labeled & has_rigid & (err > tol)
+    # A re-acquired label is on probation: its distances to its partners are held to the long-run norm for
+    # PROBATION_FRAMES, so a wrong re-acquisition cannot become its own reference and persist.
+    if st.provisional is None or len(st.provisional) != m:
+        st.provisional = np.zeros(m, int)
+    on_probation = labeled & (st.provisional > 0)
+    if on_probation.any():
+        misfit, mtol = distance_misfit(st, cur, labeled)
+        bad |= on_probation & (misfit > mtol)
+    st.provisional = np.maximum(st.provisional - 1, 0)
     if bad.any():
         taken[point_index[bad]] = False
         point_index[bad] = -1
@@ -384,6 +396,7 @@ def step(
         gate_missing[use_coast] = config.reacquire_gate_m
     gate_missing = np.where(missing, gate_missing, 0.0)
     rows, cols = _assign(pred_missing, gate_missing, points, ~taken)
+    reacquired = np.zeros(m, bool)
     if len(rows):
         point_index[rows] = cols
         cur = _gather(points, point_index)
@@ -391,6 +404,8 @@ def step(
         wrong = misfit[rows] > mtol[rows]
         point_index[rows[wrong]] = -1
         rows, cols = rows[~wrong], cols[~wrong]
+        reacquired[rows] = True
+        st.provisional[rows] = PROBATION_FRAMES
         taken[cols] = True
         labeled = point_index >= 0
         cur = _gather(points, point_index)
@@ -419,7 +434,9 @@ def step(
     predicted = st.pos_m.copy()
     if skel_pred is not None:
         predicted = np.where(labeled[:, None], skel_pred, predicted)
+    source = np.where(point_index >= 0, np.where(reacquired, 2, 1), 0).astype(np.int8)
     return st, StepResult(
+        source=source,
         point_index=point_index.astype(np.int32),
         predicted_m=predicted,
         solved=solved,
@@ -448,7 +465,8 @@ def observe(
     else:
         st.skipped += 1
     _commit(st, cur, labeled, fallback, t_ns, dt)
-    return st, StepResult(np.full(model.n_markers, -1, np.int32), st.pos_m.copy(), solved, iterations, residual)
+    source = np.where(labeled, 3, 0).astype(np.int8)
+    return st, StepResult(np.full(model.n_markers, -1, np.int32), st.pos_m.copy(), solved, iterations, residual, source)
 
 
 def _commit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, fallback: np.ndarray, t_ns: int, dt: float) -> None:
