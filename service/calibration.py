@@ -15,6 +15,7 @@ marker offsets are the markers' positions in their segment frames.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 from scipy.sparse.csgraph import connected_components
@@ -62,19 +63,31 @@ def body_frame(P: np.ndarray) -> BodyFrame:
     z = (P[:, 2] - floor) / h
     upper = P[z > 0.3, :2]
     c = upper.mean(0)
-    w, V = np.linalg.eigh(np.cov((upper - c).T))
+    # left-right is the long horizontal axis of the shoulder band (shoulders are twice as wide as deep,
+    # and swinging arms or legs hardly reach it); the whole upper body if the band is too sparse
+    band = P[(z > 0.72) & (z < 0.9), :2]
+    ref = band if len(band) >= 4 else upper
+    w, V = np.linalg.eigh(np.cov((ref - ref.mean(0)).T))
     lateral = V[:, 1]
     fwd = np.array([-lateral[1], lateral[0]])
-    # Forward is where the toes point: on a foot the lowest markers (toe, metatarsals) lie ahead of the
-    # higher ones (heel, ankle). Shank markers are no guide: they sit on the front of the shin in some sets.
+    # Forward is where the toes point: on each foot the highest marker sits over the ankle, at the back,
+    # and the marker farthest from it is at the toes. (Marker heights alone mislead: some sets put the
+    # toe marker on top of the toes, above the heel; shank markers sit on the front of the shin.)
     foot = z < 0.12
     if foot.sum() < 2:
         raise CalibrationError("no foot markers near the floor: the person is not standing")
-    fz = z[foot]
-    low = fz <= np.median(fz)
-    if low.all():
-        low = fz < fz.max()
-    if (P[foot][low, :2].mean(0) - P[foot][~low, :2].mean(0)) @ fwd < 0:
+    votes = []
+    side_of = (P[:, :2] - c) @ lateral
+    for side in (side_of > 0, side_of <= 0):
+        f_idx = np.flatnonzero(foot & side)
+        if len(f_idx) < 2:
+            continue
+        top = f_idx[np.argmax(P[f_idx, 2])]
+        far = f_idx[np.argmax(np.linalg.norm(P[f_idx, :2] - P[top, :2], axis=1))]
+        votes.append((P[far, :2] - P[top, :2]) @ fwd)
+    if not votes:
+        raise CalibrationError("no foot markers near the floor: the person is not standing")
+    if sum(votes) < 0:
         fwd = -fwd
     forward = np.array([fwd[0], fwd[1], 0.0])
     up = np.array([0.0, 0.0, 1.0])
@@ -83,19 +96,41 @@ def body_frame(P: np.ndarray) -> BodyFrame:
     return BodyFrame(np.stack([forward, left, up], axis=1), origin, float(h))
 
 
+def _vote_heading(bf: BodyFrame, history_m: np.ndarray, n: int = 12) -> BodyFrame:
+    """Let up to n frames of the history vote on which way the body faces, so that one frame with a
+    foot lifted or an arm across the shoulders cannot turn the subject around."""
+    fwd = bf.R_world_body[:, 0]
+    vote = 0.0
+    for f in np.linspace(0, len(history_m) - 1, min(n, len(history_m))).astype(int):
+        try:
+            vote += float(np.sign(body_frame(history_m[f]).R_world_body[:, 0] @ fwd))
+        except CalibrationError:
+            continue
+    if vote >= 0:
+        return bf
+    R = bf.R_world_body * np.array([-1.0, -1.0, 1.0])  # turn 180 degrees about z
+    return BodyFrame(R, bf.origin_m, bf.height_m)
+
+
 def _seg_dist(q, a, b):
     ab = b - a
     t = np.clip(((q - a) @ ab) / max(ab @ ab, 1e-12), 0.0, 1.0)
     return np.linalg.norm(q - (a + t[:, None] * ab), axis=1)
 
 
-def calibrate(positions_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def calibrate(
+    positions_m: np.ndarray, history_m: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Skeleton of an upright subject from one frame of its markers (M, 3; NaN = unseen, filled by caller).
+    With `history_m` (F, M, 3) showing motion, markers whose nearest bones are close calls go to the
+    segment whose markers keep the steadiest distances to them (they move rigidly together).
 
     Returns (marker_segment (M,), marker_offsets_m (M, 3), joint_offsets_m (14, 3), t_world_root_m (3,),
     R_parent_segment (14, 3, 3)) — the calibration pose is the model's zero pose.
     """
     bf = body_frame(positions_m)
+    if history_m is not None and len(history_m) >= 10:
+        bf = _vote_heading(bf, history_m)
     h = bf.height_m
     Q = (positions_m - bf.origin_m) @ bf.R_world_body / h  # body coordinates, in heights
     J = {}  # joint positions (segment origins), body coordinates, in heights
@@ -106,15 +141,28 @@ def calibrate(positions_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     tips = {}
     for side, s in (("l", 1.0), ("r", -1.0)):
         sh = np.array([0.0, s * _SHOULDER_Y, _SHOULDER_Z])
-        arm = Q[np.isfinite(Q[:, 0]) & (s * Q[:, 1] > _SHOULDER_Y + 0.03) & (Q[:, 2] > 0.3)]
-        if len(arm):
-            far = arm[np.argmax(np.linalg.norm(arm - sh, axis=1))]
-            d = (far - sh) / max(np.linalg.norm(far - sh), 1e-9)
+        ok = np.isfinite(Q[:, 0]) & (Q[:, 2] > 0.3)
+        arm = Q[ok & ((s * Q[:, 1] > _SHOULDER_Y + 0.03) | ((s * Q[:, 1] > 0.09) & (np.linalg.norm(Q - sh, axis=1) < 0.5)))]
+        # the elbow: toward the markers about one upper-arm length from the shoulder; the hand: the
+        # farthest arm marker. Straight arms (T-pose, hanging) and bent ones alike.
+        r = np.linalg.norm(arm - sh, axis=1) if len(arm) else np.zeros(0)
+        mid = arm[(r > 0.12) & (r < 0.26)]
+        if len(arm) and len(mid):
+            d_ua = mid.mean(0) - sh
+        elif len(arm):
+            d_ua = arm[np.argmax(r)] - sh
         else:
-            d = np.array([0.0, s, 0.0])
+            d_ua = np.array([0.0, s, 0.0])
+        d_ua /= max(np.linalg.norm(d_ua), 1e-9)
+        elbow = sh + d_ua * _UPPERARM
+        if len(arm) and r.max() > _UPPERARM * 1.2:
+            d_fa = arm[np.argmax(r)] - elbow
+            d_fa /= max(np.linalg.norm(d_fa), 1e-9)
+        else:
+            d_fa = d_ua
         J[f"{side}_upperarm"] = sh
-        J[f"{side}_forearm"] = sh + d * _UPPERARM
-        tips[f"{side}_forearm"] = sh + d * (_UPPERARM + _FOREARM_HAND)
+        J[f"{side}_forearm"] = elbow
+        tips[f"{side}_forearm"] = elbow + d_fa * _FOREARM_HAND
         hip = np.array([0.0, s * _HIP_Y, _HIP_Z])
         J[f"{side}_thigh"] = hip
         J[f"{side}_shank"] = np.array([0.0, s * _HIP_Y, _KNEE_Z])
@@ -134,7 +182,20 @@ def calibrate(positions_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     for k, name in enumerate(SEGMENTS):
         d = np.min([_seg_dist(Q, a, b) for a, b in bones[name]], axis=0)
         cost[:, k] = d - _RADIUS[name]
+    # Markers out to the side above the knees are arm markers (T-pose or hanging arms alike): split them
+    # between upper arm and forearm by how far along the arm they sit. The rest take the nearest bone.
+    arm_cols = [S[n] for n in ("l_upperarm", "l_forearm", "r_upperarm", "r_forearm")]
+    cost[:, arm_cols] = np.inf
     marker_segment = np.argmin(np.nan_to_num(cost, nan=np.inf), axis=1)
+    for side, sgn in (("l", 1.0), ("r", -1.0)):
+        sh, el, tip = J[f"{side}_upperarm"], J[f"{side}_forearm"], tips[f"{side}_forearm"]
+        d_up, d_fore = _seg_dist(Q, sh, el), _seg_dist(Q, el, tip)
+        on_arm = np.isfinite(Q[:, 0]) & (Q[:, 2] > 0.3) & (
+            (sgn * Q[:, 1] > _SHOULDER_Y + 0.03) | ((sgn * Q[:, 1] > 0.09) & (np.minimum(d_up, d_fore) < 0.045))
+        )
+        marker_segment[on_arm] = np.where(d_up[on_arm] < d_fore[on_arm], S[f"{side}_upperarm"], S[f"{side}_forearm"])
+    if history_m is not None and len(history_m) >= 10:
+        marker_segment = _by_rigidity(marker_segment, cost, history_m)
     joints_world = np.stack([J[n] for n in SEGMENTS]) * h @ bf.R_world_body.T + bf.origin_m
     joint_offsets = np.zeros((len(SEGMENTS), 3))
     for i, p in enumerate(PARENTS):
@@ -144,6 +205,37 @@ def calibrate(positions_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     R = np.tile(np.eye(3), (len(SEGMENTS), 1, 1))
     R[0] = bf.R_world_body
     return marker_segment, marker_offsets, joint_offsets, joints_world[0], R
+
+
+def _by_rigidity(marker_segment: np.ndarray, cost: np.ndarray, history_m: np.ndarray, margin: float = 0.08) -> np.ndarray:
+    """Reassign each marker among its plausible segments (bone cost within `margin` heights of the best,
+    arm segments always plausible) to the one whose other markers keep the steadiest distances to it,
+    when the history moved enough to tell (the best choice is clearly steadier than the geometric one)."""
+    d = np.linalg.norm(history_m[:, :, None] - history_m[:, None, :], axis=3)  # (F, M, M)
+    n = np.isfinite(d).sum(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # pairs never seen together: all-NaN
+        sd = np.where(n >= 10, np.nanstd(d, axis=0), np.nan)
+    out = marker_segment.copy()
+    best_cost = np.nanmin(np.where(np.isfinite(cost), cost, np.nan), axis=1)
+    for i in range(len(out)):
+        steadiness = {}
+        for k in range(cost.shape[1]):
+            plausible = cost[i, k] - best_cost[i] < margin or not np.isfinite(cost[i, k])
+            members = np.flatnonzero((marker_segment == k) & (np.arange(len(out)) != i))
+            vals = sd[i, members]
+            vals = vals[np.isfinite(vals)]
+            if plausible and len(vals) >= 1 and (np.isfinite(cost[i, k]) or k == out[i] or _is_arm(k)):
+                steadiness[k] = float(np.median(vals))
+        if out[i] in steadiness and steadiness:
+            k_best = min(steadiness, key=steadiness.get)
+            if steadiness[k_best] < 0.5 * steadiness[out[i]] and steadiness[out[i]] > 0.004:
+                out[i] = k_best
+    return out
+
+
+def _is_arm(k: int) -> bool:
+    return SEGMENTS[k].endswith(("upperarm", "forearm"))
 
 
 def fill_reference(history_m: np.ndarray) -> np.ndarray:
@@ -197,3 +289,84 @@ def detect_tpose(points: np.ndarray, free: np.ndarray) -> list[np.ndarray]:
     """Indices (into points) of each group of free points that is a person in a T-pose."""
     idx = np.flatnonzero(free)
     return [idx[c] for c in clusters(points[idx]) if is_tpose(points[idx[c]])]
+
+
+def world_transforms(t_root: np.ndarray, R_parent_segment: np.ndarray, joint_offsets: np.ndarray):
+    """World rotations (..., 14, 3, 3) and origins (..., 14, 3) of the segments, for one pose or a batch."""
+    Rs = np.empty(R_parent_segment.shape)
+    ps = np.empty(R_parent_segment.shape[:-1])
+    for i, p in enumerate(PARENTS):
+        if p < 0:
+            Rs[..., i, :, :], ps[..., i, :] = R_parent_segment[..., i, :, :], t_root
+        else:
+            Rs[..., i, :, :] = Rs[..., p, :, :] @ R_parent_segment[..., i, :, :]
+            ps[..., i, :] = ps[..., p, :] + np.einsum("...ij,j->...i", Rs[..., p, :, :], joint_offsets[i])
+    return Rs, ps
+
+
+def reassign(positions_m: np.ndarray, Rs_world: np.ndarray, ps_world: np.ndarray, marker_segment: np.ndarray) -> np.ndarray:
+    """Move each marker to the segment that carries it best over F solved frames: the segment in whose frame
+    the marker stays most still (RMS about its mean offset), if that is under 70 % of its current
+    segment's and the current one is off by more than 5 mm. Motion is what tells segments apart; in a still pose every choice fits, and none moves."""
+    local = np.einsum("fsji,fmsj->fmsi", Rs_world, positions_m[:, :, None, :] - ps_world[:, None, :, :])  # (F, M, S, 3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # markers never seen in the window: all-NaN columns
+        spread = np.sqrt(np.nanmean(np.sum((local - np.nanmean(local, axis=0)) ** 2, axis=3), axis=0))  # (M, S)
+    out = marker_segment.copy()
+    m = np.arange(len(out))
+    best = np.nanargmin(np.where(np.isfinite(spread), spread, np.inf), axis=1)
+    better = np.isfinite(spread[m, best]) & (spread[m, best] < 0.7 * spread[m, out]) & (spread[m, out] > 0.005)
+    out[better] = best[better]
+    return out
+
+
+def refine(
+    positions_m: np.ndarray,
+    R_parent_segment: np.ndarray,
+    marker_segment: np.ndarray,
+    marker_offsets_m: np.ndarray,
+    joint_offsets_m: np.ndarray,
+    prior_weight: float = 0.3,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The least-squares alignment of the skeleton: with the segment rotations of F solved frames fixed,
+    marker positions are linear in the marker offsets, the joint offsets and the root positions, so one
+    linear least-squares problem gives the offsets that explain all F frames best. A weak prior keeps
+    what the motion does not reveal (a joint that never bent) at its previous value.
+
+    positions_m (F, M, 3) NaN = unseen; R_parent_segment (F, 14, 3, 3). Returns (marker_offsets_m,
+    joint_offsets_m)."""
+    F, M, _ = positions_m.shape
+    n_j = len(PARENTS) - 1
+    chain = []  # for every segment, the segments whose joint offsets place it
+    for s in range(len(PARENTS)):
+        c, k = [], s
+        while PARENTS[k] >= 0:
+            c.append(k)
+            k = PARENTS[k]
+        chain.append(c)
+    Rs, _ = world_transforms(np.zeros((F, 3)), R_parent_segment, joint_offsets_m)
+    n_unk = 3 * M + 3 * n_j + 3 * F
+    rows, rhs = [], []
+    for f in range(F):
+        seen = np.flatnonzero(np.isfinite(positions_m[f, :, 0]))
+        for i in seen:
+            s = marker_segment[i]
+            A = np.zeros((3, n_unk))
+            A[:, 3 * i : 3 * i + 3] = Rs[f, s]
+            for k in chain[s]:
+                col = 3 * M + 3 * (k - 1)
+                A[:, col : col + 3] = Rs[f, PARENTS[k]]
+            A[:, 3 * M + 3 * n_j + 3 * f : 3 * M + 3 * n_j + 3 * f + 3] = np.eye(3)
+            rows.append(A)
+            rhs.append(positions_m[f, i])
+    # prior rows: offsets stay where they were unless the data say otherwise
+    P = np.zeros((3 * M + 3 * n_j, n_unk))
+    P[:, : 3 * M + 3 * n_j] = np.eye(3 * M + 3 * n_j) * prior_weight
+    prior_rhs = prior_weight * np.concatenate([marker_offsets_m.reshape(-1), joint_offsets_m[1:].reshape(-1)])
+    A = np.vstack(rows + [P])
+    b = np.concatenate([np.concatenate(rhs), prior_rhs])
+    x, *_ = np.linalg.lstsq(A, b, rcond=None)
+    marker_offsets = x[: 3 * M].reshape(M, 3)
+    joints = joint_offsets_m.copy()
+    joints[1:] = x[3 * M : 3 * M + 3 * n_j].reshape(n_j, 3)
+    return marker_offsets, joints

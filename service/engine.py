@@ -9,6 +9,7 @@ subject claimed this frame so no point gets two labels.
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import dataclasses
 import json
 import time
@@ -74,6 +75,9 @@ class EngineError(ValueError):
 
 
 HISTORY_FRAMES = 240  # labeled frames kept per subject for (re)calibration
+REFINE_RMS_M = 0.012  # a skeleton fitting its markers worse than this [m] RMS is re-aligned ...
+REFINE_EVERY_FRAMES = 240  # ... at most once per this many frames (then twice as long, ...)
+REFINE_APPLY_FRAMES = 60  # a refinement started at frame f takes effect at frame f + this
 DISCOVER_FRAMES = 60  # frames an unexplained point must ride on an automatic subject to become a marker
 
 
@@ -85,6 +89,9 @@ class _Subject:
     history: collections.deque  # of (M, 3) labeled positions, NaN = unlabeled
     next_calibration_frame: int = 0
     pose_cache: tuple | None = None  # (R_parent_segment it was made from, quaternions, joint angles)
+    next_refine_frame: int = 0
+    refine_interval: int = 0  # frames between skeleton refinements (doubles each time)
+    refine_job: tuple | None = None  # (future, frame to apply it at, marker count it was made for)
     auto: bool = False  # created from a T-pose: its markers are its own, and it may discover more
     candidates: list = dataclasses.field(default_factory=list)  # unexplained point tracks: [last frame, positions]
 
@@ -106,6 +113,7 @@ class Engine:
         self._subjects: dict[str, _Subject] = {}
         self._candidates: dict[str, _TposeCandidate] = {}
         self._auto_count = 0
+        self._executor: concurrent.futures.ThreadPoolExecutor | None = None
 
     # ---------------------------------------------------------------- lifecycle
     def warm_up(self) -> float:
@@ -221,6 +229,7 @@ class Engine:
         for name in order:
             s = self._subjects[name]
             self._maybe_calibrate(s, frame)
+            self._maybe_refine(s)
             s.state, res = tracker.step(s.model, s.state, points, free, frame.t_ns, self.config, self.solver)
             free[res.point_index[res.point_index >= 0]] = False
             s.history.append(tracker._gather(points, res.point_index))
@@ -274,7 +283,7 @@ class Engine:
         ref = calibration.fill_reference(hist)
         ok = np.isfinite(ref[:, 0])
         try:
-            seg, off, joints, t_root, R = calibration.calibrate(np.where(ok[:, None], ref, np.nan))
+            seg, off, joints, t_root, R = calibration.calibrate(np.where(ok[:, None], ref, np.nan), hist)
         except calibration.CalibrationError:
             return
         # markers never seen yet keep no segment until they are: park them on the pelvis with zero weight
@@ -285,6 +294,48 @@ class Engine:
         last = hist[-1]
         lab = np.isfinite(last[:, 0])
         tracker._fit(s.model, s.state, self.solver, last, lab)
+
+    def _maybe_refine(self, s: _Subject) -> None:
+        """Re-align the skeleton to the recent labeled history when it fits the markers poorly (the
+        calibration pose hid the joints: a joint shows where it is only when it bends).
+
+        The work (0.1-0.5 s) runs on a worker thread, off the frame loop, and its result is applied exactly
+        REFINE_APPLY_FRAMES frames after it was started — waiting for it then if need be — so the daemon
+        never stalls and `mocap-service label` gives the same labels as the daemon, frame for frame.
+        Intervals double after each refinement (backoff) so a subject whose markers wobble on the skin
+        does not keep the worker busy."""
+        st = s.state
+        if s.refine_job is not None:
+            future, apply_at, n_markers = s.refine_job
+            if st.frames < apply_at:
+                return
+            s.refine_job = None
+            model = future.result()
+            if model is not None and len(model.markers) == len(s.model.markers):
+                s.model = model
+                last = s.history[-1]
+                tracker._fit(s.model, st, self.solver, last, np.isfinite(last[:, 0]))
+            return
+        if not s.model.has_skeleton or st.frames < s.next_refine_frame or not st.fit_rms_m > REFINE_RMS_M:
+            return
+        s.refine_interval = min(2 * s.refine_interval, 20 * REFINE_EVERY_FRAMES) if s.refine_interval else REFINE_EVERY_FRAMES
+        s.next_refine_frame = st.frames + s.refine_interval
+        hist = np.stack(s.history)
+        job = self._worker().submit(refined_model, self.solver, s.model, hist, st.t_root_m.copy(), st.R_parent_segment.copy())
+        s.refine_job = (job, st.frames + REFINE_APPLY_FRAMES, len(s.model.markers))
+
+    def _worker(self):
+        if self._executor is None:
+            self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="mocap-refine")
+        return self._executor
+
+    def refine_skeleton(self, s: _Subject) -> None:
+        """Refine now, synchronously (tests, tools)."""
+        model = refined_model(self.solver, s.model, np.stack(s.history), s.state.t_root_m, s.state.R_parent_segment)
+        if model is not None:
+            s.model = model
+            last = s.history[-1]
+            tracker._fit(s.model, s.state, self.solver, last, np.isfinite(last[:, 0]))
 
     def _find_tposes(self, frame, points, free) -> list[str]:
         """Automatic initialisation: T-pose groups tracked still for a window become subjects."""
@@ -417,7 +468,7 @@ class Engine:
         seg = np.append(s.model.marker_segment, 0)
         off = np.vstack([s.model.marker_offsets_m, np.zeros(3)])
         if s.model.has_skeleton:  # ride on the segment of the nearest marker, at its current offset
-            Rs, ps = _world_transforms(s.state.t_root_m, s.state.R_parent_segment, s.model.joint_offsets_m)
+            Rs, ps = calibration.world_transforms(s.state.t_root_m, s.state.R_parent_segment, s.model.joint_offsets_m)
             p_new = track[-1][1]
             near = int(np.argmin(np.linalg.norm(s.state.pos_m - p_new, axis=1)))
             seg[-1] = s.model.marker_segment[near]
@@ -467,16 +518,37 @@ class Engine:
         )
 
 
-def _world_transforms(t_root, R_parent_segment, joint_offsets):
-    """World rotations (14, 3, 3) and origins (14, 3) of the segments (numpy, off the hot path)."""
-    Rs = np.empty((len(PARENTS), 3, 3))
-    ps = np.empty((len(PARENTS), 3))
-    for i, p in enumerate(PARENTS):
-        if p < 0:
-            Rs[i], ps[i] = R_parent_segment[i], t_root
-        else:
-            Rs[i], ps[i] = Rs[p] @ R_parent_segment[i], ps[p] + Rs[p] @ joint_offsets[i]
-    return Rs, ps
+def refined_model(solver, model, hist, t0, R0, n_frames: int = 40, rounds: int = 2):
+    """A better skeleton for `model` from labeled history (F, M, 3): poses of up to n_frames frames are
+    solved with the current model, markers move to the segment that carries them best, then the least-
+    squares alignment gives new offsets; twice. Pure (no engine state), so it can run on a worker thread.
+    None if the history is too thin."""
+    good = np.flatnonzero(np.isfinite(hist[..., 0]).sum(1) >= 8)
+    good = good[good >= len(hist) - 3 * n_frames]  # the recent past: it shows the motion that calls for this
+    if len(good) < 12:
+        return None
+    pick = good[np.linspace(0, len(good) - 1, min(n_frames, len(good))).astype(int)]
+    frames = hist[pick]
+    for _ in range(rounds):
+        # poses of the picked frames, newest first, each solve warm-started from the one after it
+        t, R = t0, R0
+        ts, Rs = np.empty((len(pick), 3)), np.empty((len(pick), 14, 3, 3))
+        for k in range(len(pick) - 1, -1, -1):
+            lab = np.isfinite(frames[k, :, 0])
+            fit = solver.fit(t, R, model.joint_offsets_m, model.marker_segment, model.marker_offsets_m, frames[k], lab)
+            if fit.ok:
+                t, R = fit.t_world_root_m, fit.R_parent_segment
+            ts[k], Rs[k] = t, R
+        Rw, pw = calibration.world_transforms(ts, Rs, model.joint_offsets_m)
+        seg = calibration.reassign(frames, Rw, pw, model.marker_segment)
+        off = model.marker_offsets_m.copy()
+        moved = seg != model.marker_segment
+        if moved.any():  # a moved marker starts from its mean position in its new segment
+            local = np.einsum("fmji,fmj->fmi", Rw[:, seg], frames - pw[:, seg])
+            off[moved] = np.nanmean(local[:, moved], axis=0)
+        off, joints = calibration.refine(frames, Rs, seg, off, model.joint_offsets_m)
+        model = dataclasses.replace(model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints)
+    return model
 
 
 def _positions(markers, marks: dict, points: np.ndarray) -> np.ndarray:

@@ -27,6 +27,9 @@ from scipy.optimize import linear_sum_assignment
 from service.config import EngineConfig
 
 N_PARTNERS = 8
+LOOSE_SPREAD_M = 0.015  # partners misfitting more than this hand the prediction to a well-fitting skeleton
+SKELETON_TRUSTED_RMS_M = 0.015  # a skeleton fit with a lower RMS residual may predict markers
+MAX_GATE_FACTOR = 1.5  # re-acquisition gate at most this times reacquire_gate_m
 PROBATION_FRAMES = 60  # frames a re-acquired label is re-checked against the partners' long-run distances
 DIST_TOL_M = 0.02  # a label whose partner distances stray more than this (+3 sigma) from the norm is withdrawn
 MAX_SPEED_M_S = 15.0  # markers never move faster; caps velocities estimated from bad predictions
@@ -121,7 +124,7 @@ def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m
     return st
 
 
-def _update_distances(st: TrackState, pos: np.ndarray, labeled: np.ndarray, alpha_min: float = 0.002) -> None:
+def _update_distances(st: TrackState, pos: np.ndarray, labeled: np.ndarray, alpha_min: float = 0.02) -> None:
     """Running mean/variance of pairwise distances among labeled markers (count-based, then EMA)."""
     idx = np.flatnonzero(labeled)
     if len(idx) < 2:
@@ -370,7 +373,7 @@ def step(
     if model.has_skeleton and solver is not None:
         # Unexplained = an occluded marker its rigid partners cannot place: only the skeleton can. (A
         # ghost near the body is not: no fit explains it, and solving for every ghost costs 4x.)
-        unexplained = bool((missing & ~has_rigid).any())
+        unexplained = bool((missing & (~has_rigid | (np.nan_to_num(spread) > LOOSE_SPREAD_M))).any())
         if unexplained or st.skipped >= config.max_skip_frames:
             fit = _fit(model, st, solver, cur, labeled)
             if fit is not None:
@@ -383,9 +386,17 @@ def step(
     # 4. Re-acquire occluded markers (Hungarian on predictions, gated).
     coast = st.pos_m + st.vel_m_s * dt * 0.5
     pred_missing = np.where(has_rigid[:, None], rpred, np.nan)
-    gate_missing = np.where(has_rigid, config.reacquire_gate_m * 0.8 + 3.0 * np.nan_to_num(spread), 0.0)
+    # the gate widens with the partners' misfit; when a well-fitting skeleton can take over from loose
+    # partners (below), not beyond MAX_GATE_FACTOR: loose partners place a marker poorly
+    gate_rigid = 0.8 * config.reacquire_gate_m + 3.0 * np.nan_to_num(spread)
+    if skel_pred is not None and residual < SKELETON_TRUSTED_RMS_M:
+        gate_rigid = np.minimum(gate_rigid, MAX_GATE_FACTOR * config.reacquire_gate_m)
+    gate_missing = np.where(has_rigid, gate_rigid, 0.0)
     if skel_pred is not None:
-        use_skel = missing & ~has_rigid
+        # the skeleton speaks for markers with no rigid partners in view, and for those whose partners
+        # have moved against each other since (spread), when the skeleton itself fits well
+        loose = has_rigid & (np.nan_to_num(spread) > LOOSE_SPREAD_M) & (residual < SKELETON_TRUSTED_RMS_M)
+        use_skel = missing & (~has_rigid | loose)
         pred_missing[use_skel] = skel_pred[use_skel]
         gate_missing[use_skel] = config.reacquire_gate_m
     if labeled.sum() < 4:
