@@ -31,7 +31,7 @@ LOOSE_SPREAD_M = 0.015  # partners misfitting more than this hand the prediction
 SKELETON_TRUSTED_RMS_M = 0.015  # a skeleton fit with a lower RMS residual may predict markers
 MAX_GATE_FACTOR = 1.5  # re-acquisition gate at most this times reacquire_gate_m
 PROBATION_FRAMES = 60  # frames a re-acquired label is re-checked against the partners' long-run distances
-DIST_TOL_M = 0.02  # a label whose partner distances stray more than this (+3 sigma) from the norm is withdrawn
+Z_SUSPECT = 4.0  # a label whose distances to its most rigid partners stray more sigmas than this is suspect
 MAX_SPEED_M_S = 15.0  # markers never move faster; caps velocities estimated from bad predictions
 _BIG = 1e9
 
@@ -248,25 +248,79 @@ def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, whic
     return pred, spread
 
 
-def distance_misfit(st: TrackState, cur: np.ndarray, labeled: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """How far each labeled marker's distances to its labeled partners stray from their long-run means:
-    the median |d - mean| [m] (robust to one wrong partner) and the tolerance it is held to (2 cm plus
-    three times the partners' typical spread). Unlike the rigid prediction, which follows the last frames,
-    this remembers the body, so a wrong label cannot become its own reference. NaN with < 2 partners."""
+def distance_misfit(st: TrackState, cur: np.ndarray, labeled: np.ndarray) -> np.ndarray:
+    """How many standard deviations each labeled marker's distances to its most rigid labeled partners
+    stray from their long-run means: the median z = |d - mean| / (sigma + 3 mm) over (up to) the 3
+    partners with the smallest sigma that are labeled now. Unlike the rigid prediction, which follows the
+    last frames, this remembers the body, so a wrong label cannot become its own reference.
+    NaN for markers with fewer than 2 such partners."""
     m = len(cur)
+    rows = np.arange(m)[:, None]
     part = st.partners
     pk = np.maximum(part, 0)
-    valid = (part >= 0) & labeled[pk] & labeled[:, None] & (st.dist_n[np.arange(m)[:, None], pk] >= 10)
+    valid = (part >= 0) & labeled[pk] & labeled[:, None] & (st.dist_n[rows, pk] >= 10)
+    sigma = np.sqrt(st.dist_var_m2[rows, pk]) + 0.003
     d = np.linalg.norm(np.nan_to_num(cur)[:, None, :] - np.nan_to_num(cur)[pk], axis=2)
-    e = np.where(valid, np.abs(d - st.dist_mean_m[np.arange(m)[:, None], pk]), np.inf)
-    n = valid.sum(1)
-    e.sort(axis=1)
-    mid = np.take_along_axis(e, np.maximum((n - 1) // 2, 0)[:, None], axis=1)[:, 0]
-    sig = np.where(valid, np.sqrt(st.dist_var_m2[np.arange(m)[:, None], pk]), np.inf)
-    sig.sort(axis=1)
-    sig_mid = np.take_along_axis(sig, np.maximum((n - 1) // 2, 0)[:, None], axis=1)[:, 0]
-    ok = n >= 2
-    return np.where(ok, mid, np.nan), np.where(ok, DIST_TOL_M + 3.0 * sig_mid, np.nan)
+    z = np.abs(d - st.dist_mean_m[rows, pk]) / sigma
+    # keep the 3 most rigid valid partners of each marker
+    order = np.argsort(np.where(valid, sigma, np.inf), axis=1)[:, :3]
+    zk = np.take_along_axis(np.where(valid, z, np.nan), order, axis=1)
+    n = np.isfinite(zk).sum(1)
+    zk = np.where(np.isfinite(zk), zk, np.inf)
+    zk.sort(axis=1)
+    med = np.take_along_axis(zk, np.maximum((n - 1) // 2, 0)[:, None], axis=1)[:, 0]
+    return np.where(n >= 2, med, np.nan)
+
+
+def _misfit_at(st: TrackState, i: int, x: np.ndarray, cur: np.ndarray, labeled: np.ndarray, exclude: int = -1) -> float:
+    """distance_misfit of marker i if it were at x (NaN with fewer than 2 usable partners)."""
+    part = st.partners[i]
+    part = part[(part >= 0) & (part != exclude)]
+    part = part[labeled[part] & (st.dist_n[i, part] >= 10)]
+    if len(part) < 2:
+        return float("nan")
+    sigma = np.sqrt(st.dist_var_m2[i, part]) + 0.003
+    best = np.argsort(sigma)[:3]
+    z = np.abs(np.linalg.norm(cur[part[best]] - x, axis=1) - st.dist_mean_m[i, part[best]]) / sigma[best]
+    return float(np.median(z))
+
+
+def _repair_by_distances(
+    st: TrackState, point_index: np.ndarray, cur: np.ndarray, points: np.ndarray, free: np.ndarray
+) -> None:
+    """Where the long-run partner distances say a label is wrong (z > Z_SUSPECT), move it: swap two close
+    suspects when each fits where the other is, or take a free point nearby that fits far better (the
+    freed point's own marker can then re-acquire it). Catches swaps that rigid checks miss because both
+    markers moved together since. In place."""
+    labeled = point_index >= 0
+    z = distance_misfit(st, cur, labeled)
+    sus = np.flatnonzero(labeled & (np.nan_to_num(z) > Z_SUSPECT))
+    if len(sus) == 0:
+        return
+    free_idx = np.flatnonzero(free)
+    for a, i in enumerate(sus):
+        if point_index[i] < 0:
+            continue
+        for k in sus[a + 1 :]:
+            if point_index[k] < 0 or np.linalg.norm(cur[i] - cur[k]) > 0.25:
+                continue
+            swapped = _misfit_at(st, i, cur[k], cur, labeled, exclude=k) + _misfit_at(st, k, cur[i], cur, labeled, exclude=i)
+            if swapped < 0.3 * (z[i] + z[k]):
+                point_index[i], point_index[k] = point_index[k], point_index[i]
+                cur[[i, k]] = cur[[k, i]]
+                z[i] = z[k] = 0.0
+                break
+        else:
+            near = free_idx[np.linalg.norm(points[free_idx] - cur[i], axis=1) < 0.15] if len(free_idx) else free_idx
+            if len(near):
+                zs = np.array([_misfit_at(st, i, points[p], cur, labeled) for p in near])
+                j = int(np.nanargmin(zs)) if np.isfinite(zs).any() else -1
+                if j >= 0 and zs[j] < Z_SUSPECT and zs[j] < 0.3 * z[i]:
+                    free[point_index[i]] = True
+                    free[near[j]] = False
+                    free_idx = np.flatnonzero(free)
+                    point_index[i] = near[j]
+                    cur[i] = points[near[j]]
 
 
 def _gather(points: np.ndarray, point_index: np.ndarray) -> np.ndarray:
@@ -347,6 +401,9 @@ def step(
     has_rigid = np.isfinite(rpred[:, 0])
     err = np.where(labeled & has_rigid, np.linalg.norm(np.nan_to_num(cur - rpred), axis=1), 0.0)
     _unswap(point_index, cur, rpred, err, config.rigid_check_m)
+    _repair_by_distances(st, point_index, cur, points, ~taken)
+    taken = ~free.copy()
+    taken[point_index[point_index >= 0]] = True
     labeled = point_index >= 0
     err = np.where(labeled & has_rigid, np.linalg.norm(np.nan_to_num(cur - rpred), axis=1), 0.0)
     tol = config.rigid_check_m + 4.0 * np.nan_to_num(spread)
@@ -357,8 +414,7 @@ def step(
         st.provisional = np.zeros(m, int)
     on_probation = labeled & (st.provisional > 0)
     if on_probation.any():
-        misfit, mtol = distance_misfit(st, cur, labeled)
-        bad |= on_probation & (misfit > mtol)
+        bad |= on_probation & (np.nan_to_num(distance_misfit(st, cur, labeled)) > Z_SUSPECT)
     st.provisional = np.maximum(st.provisional - 1, 0)
     if bad.any():
         taken[point_index[bad]] = False
@@ -411,8 +467,7 @@ def step(
     if len(rows):
         point_index[rows] = cols
         cur = _gather(points, point_index)
-        misfit, mtol = distance_misfit(st, cur, point_index >= 0)
-        wrong = misfit[rows] > mtol[rows]
+        wrong = np.nan_to_num(distance_misfit(st, cur, point_index >= 0)[rows]) > Z_SUSPECT
         point_index[rows[wrong]] = -1
         rows, cols = rows[~wrong], cols[~wrong]
         reacquired[rows] = True
