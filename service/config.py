@@ -34,7 +34,7 @@ class EngineConfig:
     """A label whose point is farther than this [m] from the fitted model is withdrawn."""
     prior_weight: float = 0.05
     """Weight of the prior pulling the pose toward its prediction, relative to one marker residual [m/rad]."""
-    solver_max_steps: int = 5
+    solver_max_steps: int = 3
     """Gauss-Newton iterations per solve."""
     solver_rtol: float = 1e-4
     """Relative tolerance of the Gauss-Newton solve."""

@@ -77,7 +77,7 @@ class EngineError(ValueError):
 HISTORY_FRAMES = 240  # labeled frames kept per subject for (re)calibration
 REFINE_RMS_M = 0.012  # a skeleton fitting its markers worse than this [m] RMS is re-aligned ...
 REFINE_EVERY_FRAMES = 240  # ... at most once per this many frames (then twice as long, ...)
-REFINE_APPLY_FRAMES = 60  # a refinement started at frame f takes effect at frame f + this
+REFINE_APPLY_FRAMES = 120  # a refinement started at frame f takes effect at frame f + this
 DISCOVER_FRAMES = 60  # frames an unexplained point must ride on an automatic subject to become a marker
 
 

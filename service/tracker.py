@@ -31,6 +31,9 @@ LOOSE_SPREAD_M = 0.015  # partners misfitting more than this hand the prediction
 SKELETON_TRUSTED_RMS_M = 0.015  # a skeleton fit with a lower RMS residual may predict markers
 MAX_GATE_FACTOR = 1.5  # re-acquisition gate at most this times reacquire_gate_m
 PROBATION_FRAMES = 60  # frames a re-acquired label is re-checked against the partners' long-run distances
+CHECK_RESIDUAL_M = 0.006  # a tracked label this far [m] (+10 % of the step) from its prediction is checked
+CHECK_EVERY_FRAMES = 4  # every tracked label is checked against its rigid partners this often anyway
+REPAIR_EVERY_FRAMES = 4  # the long-run distance repair runs on every 4th frame (a swap lives 3 frames more)
 Z_SUSPECT = 4.0  # a label whose distances to its most rigid partners stray more sigmas than this is suspect
 MAX_SPEED_M_S = 15.0  # markers never move faster; caps velocities estimated from bad predictions
 _BIG = 1e9
@@ -248,20 +251,25 @@ def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, whic
     return pred, spread
 
 
-def distance_misfit(st: TrackState, cur: np.ndarray, labeled: np.ndarray) -> np.ndarray:
+def distance_misfit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
     """How many standard deviations each labeled marker's distances to its most rigid labeled partners
     stray from their long-run means: the median z = |d - mean| / (sigma + 3 mm) over (up to) the 3
     partners with the smallest sigma that are labeled now. Unlike the rigid prediction, which follows the
     last frames, this remembers the body, so a wrong label cannot become its own reference.
     NaN for markers with fewer than 2 such partners."""
     m = len(cur)
-    rows = np.arange(m)[:, None]
-    part = st.partners
+    out = np.full(m, np.nan)
+    idx = np.arange(m) if rows is None else np.asarray(rows)
+    if len(idx) == 0:
+        return out
+    r = idx[:, None]
+    part = st.partners[idx]
     pk = np.maximum(part, 0)
-    valid = (part >= 0) & labeled[pk] & labeled[:, None] & (st.dist_n[rows, pk] >= 10)
-    sigma = np.sqrt(st.dist_var_m2[rows, pk]) + 0.003
-    d = np.linalg.norm(np.nan_to_num(cur)[:, None, :] - np.nan_to_num(cur)[pk], axis=2)
-    z = np.abs(d - st.dist_mean_m[rows, pk]) / sigma
+    valid = (part >= 0) & labeled[pk] & labeled[idx][:, None] & (st.dist_n[r, pk] >= 10)
+    sigma = np.sqrt(st.dist_var_m2[r, pk]) + 0.003
+    c0 = np.where(labeled[:, None], cur, 0.0)
+    d = np.linalg.norm(c0[idx][:, None, :] - c0[pk], axis=2)
+    z = np.abs(d - st.dist_mean_m[r, pk]) / sigma
     # keep the 3 most rigid valid partners of each marker
     order = np.argsort(np.where(valid, sigma, np.inf), axis=1)[:, :3]
     zk = np.take_along_axis(np.where(valid, z, np.nan), order, axis=1)
@@ -269,7 +277,8 @@ def distance_misfit(st: TrackState, cur: np.ndarray, labeled: np.ndarray) -> np.
     zk = np.where(np.isfinite(zk), zk, np.inf)
     zk.sort(axis=1)
     med = np.take_along_axis(zk, np.maximum((n - 1) // 2, 0)[:, None], axis=1)[:, 0]
-    return np.where(n >= 2, med, np.nan)
+    out[idx] = np.where(n >= 2, med, np.nan)
+    return out
 
 
 def _misfit_at(st: TrackState, i: int, x: np.ndarray, cur: np.ndarray, labeled: np.ndarray, exclude: int = -1) -> float:
@@ -349,23 +358,34 @@ def _unswap(point_index: np.ndarray, cur: np.ndarray, rpred: np.ndarray, err: np
 
 
 def _assign(pred: np.ndarray, gates: np.ndarray, points: np.ndarray, cand: np.ndarray):
-    """Hungarian assignment of markers (rows of pred, gated) to candidate points. Returns (rows, point_idx)."""
+    """Hungarian assignment of markers (rows of pred, gated) to candidate points.
+
+    Returns (rows, point_idx, contested): contested[k] is True when pair k was a choice — its marker had
+    another point in its gate, or its point was in another marker's gate — which is where swaps and
+    ghosts slip in, so only those need the (costlier) rigid check."""
+    empty = np.empty(0, int)
     rows = np.flatnonzero(np.isfinite(pred[:, 0]) & (gates > 0))
     cols = np.flatnonzero(cand)
     if len(rows) == 0 or len(cols) == 0:
-        return np.empty(0, int), np.empty(0, int)
+        return empty, empty, np.empty(0, bool)
     d2 = np.sum((pred[rows, None, :] - points[None, cols, :]) ** 2, axis=2)
     g2 = gates[rows, None] ** 2
     # Quick reject of rows/cols with nothing in range keeps the Hungarian problem small.
     ok = d2 < g2
     r_any, c_any = ok.any(1), ok.any(0)
     if not r_any.any():
-        return np.empty(0, int), np.empty(0, int)
+        return empty, empty, np.empty(0, bool)
     rows, cols, d2, g2, ok = rows[r_any], cols[c_any], d2[r_any][:, c_any], g2[r_any], ok[r_any][:, c_any]
-    cost = np.where(ok, d2 / g2, _BIG)
-    r, c = linear_sum_assignment(cost)
-    keep = cost[r, c] < _BIG
-    return rows[r[keep]], cols[c[keep]]
+    n_row, n_col = ok.sum(1), ok.sum(0)
+    if np.all(n_row == 1) and np.all(n_col == 1):  # no choice to make: skip the Hungarian solve
+        r, c = np.arange(len(rows)), np.argmax(ok, axis=1)
+    else:
+        cost = np.where(ok, d2 / g2, _BIG)
+        r, c = linear_sum_assignment(cost)
+        keep = cost[r, c] < _BIG
+        r, c = r[keep], c[keep]
+    contested = (n_row[r] > 1) | (n_col[c] > 1)
+    return rows[r], cols[c], contested
 
 
 def step(
@@ -388,22 +408,29 @@ def step(
     pred_track = st.pos_m + st.vel_m_s * dt
     speed = np.linalg.norm(st.vel_m_s, axis=1)
     gates = np.where(st.labeled, config.nnt_gate_m + 0.35 * speed * dt, 0.0)
-    rows, cols = _assign(pred_track, gates, points, ~taken)
+    rows, cols, contested = _assign(pred_track, gates, points, ~taken)
     point_index[rows] = cols
     taken[cols] = True
+    # a label needs the rigid check when it was a choice, or when its point is not where the marker was
+    # heading (a ghost caught in the gate as the marker vanished); a full check every CHECK_EVERY frames
+    resid = np.linalg.norm(points[cols] - pred_track[rows], axis=1)
+    suspicious = np.zeros(m, bool)
+    suspicious[rows] = contested | (resid > CHECK_RESIDUAL_M + 0.1 * speed[rows] * dt)
 
     labeled = point_index >= 0
     cur = _gather(points, point_index)
 
     # 2. Predict every marker from its rigid partners; a tracked label its partners disagree with (a swap
     #    of two close markers, a ghost caught while the marker hid) is withdrawn and re-assigned below.
-    rpred, spread = rigid_predictions(st, cur, labeled, st.ever_seen)
+    check = st.ever_seen & (~labeled | suspicious | (st.frames % CHECK_EVERY_FRAMES == 0))
+    rpred, spread = rigid_predictions(st, cur, labeled, check)
     has_rigid = np.isfinite(rpred[:, 0])
     err = np.where(labeled & has_rigid, np.linalg.norm(np.nan_to_num(cur - rpred), axis=1), 0.0)
     _unswap(point_index, cur, rpred, err, config.rigid_check_m)
-    _repair_by_distances(st, point_index, cur, points, ~taken)
-    taken = ~free.copy()
-    taken[point_index[point_index >= 0]] = True
+    if st.frames % REPAIR_EVERY_FRAMES == 0:
+        _repair_by_distances(st, point_index, cur, points, ~taken)
+        taken = ~free.copy()
+        taken[point_index[point_index >= 0]] = True
     labeled = point_index >= 0
     err = np.where(labeled & has_rigid, np.linalg.norm(np.nan_to_num(cur - rpred), axis=1), 0.0)
     tol = config.rigid_check_m + 4.0 * np.nan_to_num(spread)
@@ -414,7 +441,8 @@ def step(
         st.provisional = np.zeros(m, int)
     on_probation = labeled & (st.provisional > 0)
     if on_probation.any():
-        bad |= on_probation & (np.nan_to_num(distance_misfit(st, cur, labeled)) > Z_SUSPECT)
+        z = distance_misfit(st, cur, labeled, np.flatnonzero(on_probation))
+        bad |= on_probation & (np.nan_to_num(z) > Z_SUSPECT)
     st.provisional = np.maximum(st.provisional - 1, 0)
     if bad.any():
         taken[point_index[bad]] = False
@@ -429,7 +457,8 @@ def step(
     if model.has_skeleton and solver is not None:
         # Unexplained = an occluded marker its rigid partners cannot place: only the skeleton can. (A
         # ghost near the body is not: no fit explains it, and solving for every ghost costs 4x.)
-        unexplained = bool((missing & (~has_rigid | (np.nan_to_num(spread) > LOOSE_SPREAD_M))).any())
+        loose = (np.nan_to_num(spread) > LOOSE_SPREAD_M) & (st.fit_rms_m < SKELETON_TRUSTED_RMS_M)
+        unexplained = bool((missing & (~has_rigid | loose)).any())
         if unexplained or st.skipped >= config.max_skip_frames:
             fit = _fit(model, st, solver, cur, labeled)
             if fit is not None:
@@ -462,12 +491,12 @@ def step(
         pred_missing[use_coast] = coast[use_coast]
         gate_missing[use_coast] = config.reacquire_gate_m
     gate_missing = np.where(missing, gate_missing, 0.0)
-    rows, cols = _assign(pred_missing, gate_missing, points, ~taken)
+    rows, cols, _ = _assign(pred_missing, gate_missing, points, ~taken)
     reacquired = np.zeros(m, bool)
     if len(rows):
         point_index[rows] = cols
         cur = _gather(points, point_index)
-        wrong = np.nan_to_num(distance_misfit(st, cur, point_index >= 0)[rows]) > Z_SUSPECT
+        wrong = np.nan_to_num(distance_misfit(st, cur, point_index >= 0, rows)[rows]) > Z_SUSPECT
         point_index[rows[wrong]] = -1
         rows, cols = rows[~wrong], cols[~wrong]
         reacquired[rows] = True
@@ -477,7 +506,7 @@ def step(
         cur = _gather(points, point_index)
 
     # 5. Refine and reject labels the model disagrees with.
-    if solved and len(rows):
+    if solved and len(rows) >= 3:  # a second fit only when re-acquisition added much (it costs ~1 ms)
         fit = _fit(model, st, solver, cur, labeled)
         if fit is not None:
             iterations += fit.iterations
@@ -486,7 +515,7 @@ def step(
     if skel_pred is not None and residual < 0.5 * config.reject_residual_m:
         # the model's word counts only where no rigid partners can speak for a marker
         err = np.linalg.norm(np.where(labeled[:, None], cur - skel_pred, 0.0), axis=1)
-        bad = labeled & ~has_rigid & (err > config.reject_residual_m)
+        bad = labeled & check & ~has_rigid & (err > config.reject_residual_m)
         if bad.any():
             point_index[bad] = -1
             labeled = point_index >= 0
