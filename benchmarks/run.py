@@ -233,10 +233,10 @@ def plan(data_dir: Path, files: list[str], levels: list[str], max_s: float | Non
         rec = load(str(data_dir), file, None)
         max_frames = int(round(max_s * rec.rate_hz)) if max_s else None
         modes = ["tpose"] if file in TPOSE_FILES else []
-        if min(rec.n_frames, max_frames or rec.n_frames) > round(SEED_S * rec.rate_hz) + rec.rate_hz:
+        if min(rec.n_frames, max_frames or rec.n_frames) > round(SEED_S * rec.rate_hz) + 0.25 * rec.rate_hz:
             modes.insert(0, "seeded")
-        else:  # nothing (or under a second) would be left to score after the 2 s seed
-            notes.append(f"{file} ({rec.n_frames / rec.rate_hz:.1f} s) is too short for seeded mode (2 s seed + 1 s)")
+        else:  # nothing (or under a quarter second) would be left to score after the 2 s seed
+            notes.append(f"{file} ({rec.n_frames / rec.rate_hz:.1f} s) is too short for seeded mode (2 s seed + 0.25 s)")
         for level in levels:
             for mode in modes:
                 for variant in VARIANTS:

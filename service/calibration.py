@@ -346,25 +346,30 @@ def refine(
         chain.append(c)
     Rs, _ = world_transforms(np.zeros((F, 3)), R_parent_segment, joint_offsets_m)
     n_unk = 3 * M + 3 * n_j + 3 * F
-    rows, rhs = [], []
-    for f in range(F):
-        seen = np.flatnonzero(np.isfinite(positions_m[f, :, 0]))
-        for i in seen:
-            s = marker_segment[i]
-            A = np.zeros((3, n_unk))
-            A[:, 3 * i : 3 * i + 3] = Rs[f, s]
-            for k in chain[s]:
-                col = 3 * M + 3 * (k - 1)
-                A[:, col : col + 3] = Rs[f, PARENTS[k]]
-            A[:, 3 * M + 3 * n_j + 3 * f : 3 * M + 3 * n_j + 3 * f + 3] = np.eye(3)
-            rows.append(A)
-            rhs.append(positions_m[f, i])
+    # One 3-row block per observation, built with array indexing (no Python loop per observation: this
+    # runs on a worker thread beside the frame loop and must not hold the interpreter lock for long).
+    f_obs, i_obs = np.nonzero(np.isfinite(positions_m[..., 0]))
+    n_obs = len(f_obs)
+    seg = marker_segment[i_obs]
+    A = np.zeros((3 * n_obs, n_unk))
+    r3 = 3 * np.arange(n_obs)[:, None] + np.arange(3)  # (N, 3) row indices of each block
+    c3 = np.arange(3)
+    A[r3[:, :, None], (3 * i_obs)[:, None, None] + c3[None, None, :]] = Rs[f_obs, seg]
+    anc = np.array([[k in chain[s_] for k in range(len(PARENTS))] for s_ in range(len(PARENTS))])
+    for k in range(1, len(PARENTS)):
+        rows = np.flatnonzero(anc[seg, k])
+        if len(rows):
+            col = 3 * M + 3 * (k - 1)
+            A[r3[rows][:, :, None], col + c3[None, None, :]] = Rs[f_obs[rows], PARENTS[k]]
+    A[r3[:, :, None], (3 * M + 3 * n_j + 3 * f_obs)[:, None, None] + c3[None, None, :]] = np.eye(3)
+    rows = [A]
+    rhs = [positions_m[f_obs, i_obs].reshape(-1)]
     # prior rows: offsets stay where they were unless the data say otherwise
     P = np.zeros((3 * M + 3 * n_j, n_unk))
     P[:, : 3 * M + 3 * n_j] = np.eye(3 * M + 3 * n_j) * prior_weight
     prior_rhs = prior_weight * np.concatenate([marker_offsets_m.reshape(-1), joint_offsets_m[1:].reshape(-1)])
     A = np.vstack(rows + [P])
-    b = np.concatenate([np.concatenate(rhs), prior_rhs])
+    b = np.concatenate(rhs + [prior_rhs])
     x, *_ = np.linalg.lstsq(A, b, rcond=None)
     marker_offsets = x[: 3 * M].reshape(M, 3)
     joints = joint_offsets_m.copy()

@@ -2,27 +2,17 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import ezc3d
 import numpy as np
 import pytest
 
+from tests.conftest import data_path
+
 from recordings.c3d import UP_AXES, C3DError, read_c3d, write_c3d, z_up_rotation
 from recordings.recording import is_marker_label, split_label
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-
-
-def data_file(relative: str) -> Path:
-    """A real recording from ../shared/data; missing fails under CI=true (CI has it), skips elsewhere."""
-    path = DATA / relative
-    if not path.is_file():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"{path} is missing; CI must have ../shared/data beside the checkout")
-        pytest.skip(f"{path} is not available")
-    return path
 
 
 def walker(n_frames: int = 240, seed: int = 0) -> np.ndarray:
@@ -222,7 +212,7 @@ def _mean_height_m(recording, names: set[str]) -> float:
 
 
 def test_georgiatech_squat_is_y_up_and_read_z_up():
-    path = data_file("georgiatech/squat.c3d")
+    path = data_path("georgiatech/squat.c3d")
     raw_mm = ezc3d.c3d(str(path))["data"]["points"][:3].transpose(2, 1, 0)
 
     recording = read_c3d(path)
@@ -240,7 +230,7 @@ def test_georgiatech_squat_is_y_up_and_read_z_up():
 @pytest.mark.parametrize("relative", ["cmu/07_01.c3d", "numediart/03_rolling.c3d"])
 def test_z_up_files_are_not_rotated(relative):
     """CMU says +Z in Y_SCREEN; numediart says -Z there but its floor is at z = 0 below the body."""
-    path = data_file(relative)
+    path = data_path(relative)
     raw_mm = ezc3d.c3d(str(path))["data"]["points"][:3].transpose(2, 1, 0)
 
     recording = read_c3d(path)
@@ -250,7 +240,7 @@ def test_z_up_files_are_not_rotated(relative):
 
 
 def test_cmu_head_is_above_feet():
-    recording = read_c3d(data_file("cmu/07_01.c3d"))
+    recording = read_c3d(data_path("cmu/07_01.c3d"))
 
     head_m = _mean_height_m(recording, {"LFHD", "RFHD", "LBHD", "RBHD"})
     feet_m = _mean_height_m(recording, {"LTOE", "RTOE", "LHEE", "RHEE"})
@@ -282,7 +272,7 @@ README_FACTS = [
     ("relative", "n_frames", "rate_hz", "n_points", "n_named", "metres_per_unit"), README_FACTS
 )
 def test_readme_facts(relative, n_frames, rate_hz, n_points, n_named, metres_per_unit):
-    path = data_file(relative)
+    path = data_path(relative)
 
     recording = read_c3d(path)
 
@@ -308,7 +298,7 @@ def test_readme_facts(relative, n_frames, rate_hz, n_points, n_named, metres_per
     ],
 )
 def test_readme_missing_fractions(relative, low, high):
-    recording = read_c3d(data_file(relative))
+    recording = read_c3d(data_path(relative))
 
     missing = np.isnan(recording.points_m).any(axis=2).mean()
 
@@ -316,7 +306,7 @@ def test_readme_missing_fractions(relative, low, high):
 
 
 def test_two_players_file_has_two_subjects_of_39():
-    recording = read_c3d(data_file("kineticstoolkit/kinematics_tennis_serve_2players.c3d"))
+    recording = read_c3d(data_path("kineticstoolkit/kinematics_tennis_serve_2players.c3d"))
 
     subjects = [split_label(label)[0] for label in recording.labels]
 

@@ -5,12 +5,13 @@ Tests reading ../shared/data fail when CI=true and the file is missing, and skip
 """
 
 import json
-import os
 import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from tests.conftest import data_path
 import zmq
 
 from benchmarks.score import score
@@ -30,16 +31,6 @@ from recordings.bvh import read_bvh
 from recordings.c3d import read_c3d
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
-
-
-def data_file(relative: str) -> Path:
-    path = DATA / relative
-    if not path.is_file():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"{path} is missing (CI=true: the shared recordings must be there)")
-        pytest.skip(f"{path} is not available")
-    return path
 
 
 @pytest.fixture(scope="module")
@@ -91,7 +82,7 @@ def _answered_accuracy(result, given) -> tuple[float, float]:
 
 def test_real_recording_seeded(daemon, tmp_path):
     """cmu/07_01 (walking, 41 markers), labels in the first 2 s, played at twice its speed."""
-    path = data_file("cmu/07_01.c3d")
+    path = data_path("cmu/07_01.c3d")
     stdout = _session(daemon, tmp_path, "walk", path, "--seed-seconds", "2", "--speed", "2")
     assert "recorded" in stdout
 
