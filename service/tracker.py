@@ -219,36 +219,6 @@ def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, whic
     spread[rows] = sp
     pred[rows] = np.einsum("rij,rj->ri", R, self_src - cs) + cd
     return pred, spread
-    part = st.partners[rows]  # (R, K)
-    pk = np.maximum(part, 0)
-    src = st.snap_m[rows[:, None], pk]  # (R, K, 3) partner positions when marker was last seen
-    self_src = st.snap_m[rows, rows]  # (R, 3)
-    dst = pos[pk]  # (R, K, 3)
-    w = (part >= 0) & labeled[pk] & np.isfinite(src[..., 0]) & np.isfinite(self_src[:, :1])
-    n = w.sum(1)
-    ok = n >= 3
-    if not ok.any():
-        return pred, spread
-    rows, part, src, dst, w, self_src, n = rows[ok], pk[ok], src[ok], dst[ok], w[ok], self_src[ok], n[ok]
-    # partners weighted by how rigidly they keep their distance to the marker (sigma + 3 mm of skin)
-    sigma = np.sqrt(st.dist_var_m2[rows[:, None], part])
-    wf = (w / (sigma + 0.003) ** 2)[..., None]
-    wsum = wf.sum(1)
-    src, dst = np.where(w[..., None], src, 0.0), np.where(w[..., None], dst, 0.0)
-    cs = (src * wf).sum(1) / wsum
-    cd = (dst * wf).sum(1) / wsum
-    a, b = (src - cs[:, None]) * w[..., None], (dst - cd[:, None]) * wf
-    H = np.einsum("rki,rkj->rij", a, b)
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.einsum("rji,rkj->rik", Vt, U)))
-    D = np.ones((len(rows), 3))
-    D[:, 2] = np.where(d == 0, 1.0, d)
-    R = np.einsum("rji,rj,rkj->rik", Vt, D, U)  # V diag(D) U^T
-    fitted = np.einsum("rij,rkj->rki", R, a) + cd[:, None]
-    res = np.where(w, np.sum((fitted - dst) ** 2, axis=2), 0.0) * wf[..., 0]
-    spread[rows] = np.sqrt(res.sum(1) / wsum[:, 0])
-    pred[rows] = np.einsum("rij,rj->ri", R, self_src - cs) + cd
-    return pred, spread
 
 
 def distance_misfit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
