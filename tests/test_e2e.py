@@ -81,9 +81,9 @@ def _answered_accuracy(result, given) -> tuple[float, float]:
 
 
 def test_real_recording_seeded(daemon, tmp_path):
-    """cmu/07_01 (walking, 41 markers), labels in the first 2 s, played at twice its speed."""
+    """cmu/07_01 (walking, 41 markers), labels in the first 2 s, played at its own rate (2.6 s)."""
     path = data_path("cmu/07_01.c3d")
-    stdout = _session(daemon, tmp_path, "walk", path, "--seed-seconds", "2", "--speed", "2")
+    stdout = _session(daemon, tmp_path, "walk", path, "--seed-seconds", "2")
     assert "recorded" in stdout
 
     original = read_c3d(path)
@@ -106,8 +106,8 @@ def test_real_recording_seeded(daemon, tmp_path):
     given = given_labels(load_labels(tmp_path / "walk_labels.npz"), seq)
     result = score(seq, given, "seeded", labeled)
     accuracy, answered = _answered_accuracy(result, given)
-    # At twice the capture rate a busy shared machine drops frames to keep up (answered < 1): the labels
-    # of the frames it did answer are what this checks.
+    # A busy shared machine may drop frames to keep up (answered < 1): the labels of the frames it did
+    # answer are what this checks.
     assert answered > 0.25 and accuracy > 0.9, (accuracy, answered)
     assert result.precision > 0.97
 
