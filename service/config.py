@@ -44,8 +44,6 @@ class EngineConfig:
     """Frames a T-pose candidate must hold still before a subject is created from it."""
     max_points: int = 4096
     """Frames with more points are rejected as malformed (a capture volume never sees that many)."""
-    lost_after_s: float = 2.0
-    """A subject with no labeled marker for this long [s] is reported lost (kept, re-found by prediction)."""
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):

@@ -91,7 +91,7 @@ class _Subject:
     pose_cache: tuple | None = None  # (R_parent_segment it was made from, quaternions, joint angles)
     next_refine_frame: int = 0
     refine_interval: int = 0  # frames between skeleton refinements (doubles each time)
-    refine_job: tuple | None = None  # (future, frame to apply it at, marker count it was made for)
+    refine_job: tuple | None = None  # (future, frame to apply it at)
     auto: bool = False  # created from a T-pose: its markers are its own, and it may discover more
     candidates: list = dataclasses.field(default_factory=list)  # unexplained point tracks: [last frame, positions]
 
@@ -306,7 +306,7 @@ class Engine:
         does not keep the worker busy."""
         st = s.state
         if s.refine_job is not None:
-            future, apply_at, n_markers = s.refine_job
+            future, apply_at = s.refine_job
             if st.frames < apply_at:
                 return
             s.refine_job = None
@@ -322,20 +322,12 @@ class Engine:
         s.next_refine_frame = st.frames + s.refine_interval
         hist = np.stack(s.history)
         job = self._worker().submit(refined_model, self.solver, s.model, hist, st.t_root_m.copy(), st.R_parent_segment.copy())
-        s.refine_job = (job, st.frames + REFINE_APPLY_FRAMES, len(s.model.markers))
+        s.refine_job = (job, st.frames + REFINE_APPLY_FRAMES)
 
     def _worker(self):
         if self._executor is None:
             self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="mocap-refine")
         return self._executor
-
-    def refine_skeleton(self, s: _Subject) -> None:
-        """Refine now, synchronously (tests, tools)."""
-        model = refined_model(self.solver, s.model, np.stack(s.history), s.state.t_root_m, s.state.R_parent_segment)
-        if model is not None:
-            s.model = model
-            last = s.history[-1]
-            tracker._fit(s.model, s.state, self.solver, last, np.isfinite(last[:, 0]))
 
     def _find_tposes(self, frame, points, free) -> list[str]:
         """Automatic initialisation: T-pose groups tracked still for a window become subjects."""

@@ -25,7 +25,6 @@ from service.kinematics import marker_positions, rotvec_to_matrix, segment_trans
 jax.config.update("jax_enable_x64", True)  # float64: the normal equations square the conditioning
 
 DTYPE = np.float64
-N_PARAMS = 3 + 3 * N_SEGMENTS  # 45: root translation + one rotation vector per segment
 
 
 @dataclasses.dataclass(frozen=True)

@@ -70,10 +70,10 @@ class TrackState:
     dist_var_m2: np.ndarray  # (M, M)
     partners: np.ndarray  # (M, K) int, -1 = none
     snap_m: np.ndarray  # (M, M, 3): row i = every marker's position when i was last labeled (NaN = unlabeled then)
+    provisional: np.ndarray  # (M,) int, frames left in which a re-acquired label is re-checked
     # skeleton
     t_root_m: np.ndarray  # (3,)
     R_parent_segment: np.ndarray  # (14, 3, 3)
-    provisional: np.ndarray | None = None  # (M,) int, frames left in which a re-acquired label is re-checked
     skipped: int = 0  # solves skipped in a row
     frames: int = 0
     last_labeled_t_ns: int = 0
@@ -106,6 +106,7 @@ def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m
         dist_var_m2=np.zeros((m, m)),
         partners=np.full((m, N_PARTNERS), -1),
         snap_m=np.full((m, m, 3), np.nan),
+        provisional=np.zeros(m, int),
         t_root_m=np.zeros(3),
         R_parent_segment=np.tile(np.eye(3), (14, 1, 1)),
         last_labeled_t_ns=t_ns,
@@ -407,8 +408,6 @@ def step(
     bad = labeled & has_rigid & (err > tol)
     # A re-acquired label is on probation: its distances to its partners are held to the long-run norm for
     # PROBATION_FRAMES, so a wrong re-acquisition cannot become its own reference and persist.
-    if st.provisional is None or len(st.provisional) != m:
-        st.provisional = np.zeros(m, int)
     on_probation = labeled & (st.provisional > 0)
     if on_probation.any():
         z = distance_misfit(st, cur, labeled, np.flatnonzero(on_probation))
