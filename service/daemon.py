@@ -106,20 +106,23 @@ def skeleton_message(description: dict) -> pm.Skeleton:
     )
 
 
-def result_messages(out) -> list[pm.Labels | pm.Pose]:
-    """One `SubjectOutput` -> its labels/<subject> and, once the subject has a calibrated skeleton, its
-    pose/<subject> message (before that the pose is meaningless, so none is sent)."""
-    labels = pm.Labels(
+def label_message(out) -> pm.Labels:
+    """One `SubjectOutput` -> its labels/<subject> message."""
+    return pm.Labels(
         subject=out.subject, stream=out.stream, frame=out.frame, t_ns=out.t_ns, markers=list(out.markers),
         point_index=out.point_index, positions=out.positions_m, solved=bool(out.solved),
         predicted=out.predicted_m, iterations=int(out.iterations), residual_m=float(out.residual_m),
     )
-    pose = pm.Pose(
+
+
+def pose_message(out) -> pm.Pose:
+    """One `SubjectOutput` (completed: `Engine.complete`) -> its pose/<subject> message. Send it only once
+    the subject has a calibrated skeleton (`has_pose`): before that the pose is meaningless."""
+    return pm.Pose(
         subject=out.subject, stream=out.stream, frame=out.frame, t_ns=out.t_ns, segments=list(SEGMENTS),
         parents=list(PARENTS), root_position=out.root_position_m, rotations=out.rotations_xyzw,
         joint_angles=out.joint_angles_rad,
     )
-    return [labels, pose] if getattr(out, "has_pose", True) else [labels]
 
 
 class Daemon:
@@ -319,13 +322,21 @@ class Daemon:
             return
         for subject in stats.new_subjects:  # first, so a consumer can read the labels that follow
             self._publish_skeleton(subject)
+        # labels first, as soon as they are known; then the poses, whose fits computed meanwhile
         for out in outputs:
             has_pose = getattr(out, "has_pose", True)
             if has_pose and not self._has_pose.get(out.subject, False):  # calibrated since: new description
                 self._publish_skeleton(out.subject)
             self._has_pose[out.subject] = has_pose
-            for msg in result_messages(out):
-                self._publish(pm.encode(msg))
+            self._publish(pm.encode(label_message(out)))
+        try:
+            outputs = self.engine.complete(outputs)
+        except Exception as e:  # noqa: BLE001 - as for step
+            self._count_error("engine_error", e)
+            return
+        for out in outputs:
+            if getattr(out, "has_pose", True):
+                self._publish(pm.encode(pose_message(out)))
         self.frames_processed += 1
         self.points_received += stats.n_points
         self.points_invalid += stats.n_invalid

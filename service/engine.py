@@ -164,6 +164,7 @@ class Engine:
         d.mkdir(parents=True, exist_ok=True)
         for name, s in self._subjects.items():
             m = s.model
+            tracker.collect(m, s.state)
             np.savez(
                 d / f"{name}.npz",
                 meta=json.dumps({"name": name, "stream": s.stream, "markers": list(m.markers), "has_skeleton": m.has_skeleton}),
@@ -444,8 +445,38 @@ class Engine:
             return False
         return bool(np.all(np.std(np.array(spread), axis=0) < 0.008))
 
+    def complete(self, outputs: list[SubjectOutput]) -> list[SubjectOutput]:
+        """`outputs` of the last `step` with the pose of their own frame. `step` returns as soon as the
+        labels are known, with the pose of the latest completed fit, while the fits launched on this frame's
+        labels still compute (on XLA's thread); this waits for them, so labels can be published first and
+        poses right after. Labels are the same either way."""
+        done = []
+        for out in outputs:
+            s = self._subjects.get(out.subject)
+            if s is None or not out.solved:
+                done.append(out)
+                continue
+            tracker.collect(s.model, s.state)
+            st = s.state
+            done.append(dataclasses.replace(out, iterations=st.fit_iterations, residual_m=st.fit_rms_m, **self._pose_fields(s)))
+        return done
+
+    @staticmethod
+    def _pose_fields(s: _Subject) -> dict:
+        st = s.state
+        # quaternions and angles change only when a solve ran: convert once per solve, not per frame
+        if s.pose_cache is None or s.pose_cache[0] is not st.R_parent_segment:
+            s.pose_cache = (
+                st.R_parent_segment,
+                matrix_to_quat_xyzw(st.R_parent_segment).astype(np.float32),
+                joint_angles(st.R_parent_segment).astype(np.float32),
+            )
+        _, quats, angles = s.pose_cache
+        return dict(root_position_m=np.asarray(st.t_root_m, np.float32), rotations_xyzw=quats, joint_angles_rad=angles)
+
     def _add_marker(self, s: _Subject, frame, track) -> None:
         """Grow an automatic subject by one marker (its own next id), keeping the tracking state."""
+        tracker.collect(s.model, s.state)  # the pose of the fit in flight, before the state is rebuilt
         m_old = len(s.model.markers)
         name = f"M{m_old:02d}"
         while name in s.model.markers:
@@ -481,15 +512,6 @@ class Engine:
         ok = res.point_index >= 0
         idx[ok] = keep[res.point_index[ok]]  # back to the frame's own indexing (non-finite points dropped)
         positions = tracker._gather(pts, idx).astype(np.float32)
-        st = s.state
-        # quaternions and angles change only when a solve ran: convert once per solve, not per frame
-        if s.pose_cache is None or s.pose_cache[0] is not st.R_parent_segment:
-            s.pose_cache = (
-                st.R_parent_segment,
-                matrix_to_quat_xyzw(st.R_parent_segment).astype(np.float32),
-                joint_angles(st.R_parent_segment).astype(np.float32),
-            )
-        _, quats, angles = s.pose_cache
         return SubjectOutput(
             subject=s.model.name,
             stream=s.stream,
@@ -502,9 +524,7 @@ class Engine:
             solved=res.solved,
             iterations=res.iterations,
             residual_m=res.residual_m,
-            root_position_m=np.asarray(st.t_root_m, np.float32),
-            rotations_xyzw=quats,
-            joint_angles_rad=angles,
+            **self._pose_fields(s),
             has_pose=s.model.has_skeleton,
             source=res.source,
         )

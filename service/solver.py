@@ -107,6 +107,29 @@ def _predict(t, R_parent_segment, joint_offsets, marker_segment, marker_offsets)
     return marker_positions(Rs, ps, marker_segment, marker_offsets), Rs, ps
 
 
+class PendingFit:
+    """A launched solve; `result()` waits for it (once) and converts it to a `FitResult`."""
+
+    def __init__(self, outputs, n_markers: int):
+        self._outputs = outputs
+        self._m = n_markers
+        self._result: FitResult | None = None
+
+    def result(self) -> FitResult:
+        if self._result is None:
+            t, R, pred, rms, steps, ok = self._outputs
+            self._result = FitResult(
+                t_world_root_m=np.asarray(t),
+                R_parent_segment=np.asarray(R),
+                predicted_m=np.asarray(pred)[: self._m],
+                residual_rms_m=float(rms),
+                iterations=int(steps),
+                ok=bool(ok),
+            )
+            self._outputs = None
+        return self._result
+
+
 class PoseSolver:
     """Fits the skeleton of one subject model; holds only the compiled shapes and the settings."""
 
@@ -133,14 +156,30 @@ class PoseSolver:
         mask: np.ndarray,
         weight: np.ndarray | None = None,
     ) -> FitResult:
-        """Fit from the start pose (t0, R0) to `observed_m` (M, 3) where `mask` (M,) is True."""
+        """Fit from the start pose (t0, R0) to `observed_m` (M, 3) where `mask` (M,) is True; blocks."""
+        return self.launch(t0_m, R0_parent_segment, joint_offsets_m, marker_segment, marker_offsets_m, observed_m, mask, weight).result()
+
+    def launch(
+        self,
+        t0_m: np.ndarray,
+        R0_parent_segment: np.ndarray,
+        joint_offsets_m: np.ndarray,
+        marker_segment: np.ndarray,
+        marker_offsets_m: np.ndarray,
+        observed_m: np.ndarray,
+        mask: np.ndarray,
+        weight: np.ndarray | None = None,
+    ) -> PendingFit:
+        """Start the fit of `fit` and return at once (JAX dispatches asynchronously: XLA computes on its own
+        thread, without the GIL, so the caller's numpy work and the solve share the two cores). Every input
+        is copied into fresh arrays here, so the caller may change its own afterwards."""
         m = len(marker_segment)
         if weight is None:
             weight = np.ones(m)
-        t, R, pred, rms, steps, ok = _solve(
-            np.asarray(t0_m, DTYPE),
-            np.asarray(R0_parent_segment, DTYPE),
-            np.asarray(joint_offsets_m, DTYPE),
+        outputs = _solve(
+            np.array(t0_m, DTYPE),
+            np.array(R0_parent_segment, DTYPE),
+            np.array(joint_offsets_m, DTYPE),
             self.pad(np.asarray(marker_segment, np.int32)),
             self.pad(np.asarray(marker_offsets_m, DTYPE)),
             self.pad(np.nan_to_num(np.asarray(observed_m, DTYPE))),
@@ -150,15 +189,7 @@ class PoseSolver:
             self.rtol,
             max_steps=self.max_steps,
         )
-        ok = bool(ok)
-        return FitResult(
-            t_world_root_m=np.asarray(t),
-            R_parent_segment=np.asarray(R),
-            predicted_m=np.asarray(pred)[:m],
-            residual_rms_m=float(rms),
-            iterations=int(steps),
-            ok=ok,
-        )
+        return PendingFit(outputs, m)
 
     def predict(self, t_m, R_parent_segment, joint_offsets_m, marker_segment, marker_offsets_m) -> np.ndarray:
         """(M, 3) marker positions of a pose, through the same compiled FK."""

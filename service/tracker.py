@@ -2,16 +2,19 @@
 
 1. Tracking (NNT): markers labeled in the previous frame are predicted at constant velocity and matched
    one-to-one to points with the Hungarian method inside a gate that widens with speed x frame time.
-2. The skeleton fit (optimistix Gauss-Newton, `service.solver`) runs when something is left unexplained
-   (a point near the subject without a label, an occluded marker that cannot be predicted from rigid
-   partners) and at least every `max_skip_frames` frames; otherwise it is skipped.
+2. Checks: a label its rigid partners disagree with (a swap of two close markers, a ghost caught while the
+   marker hid) is withdrawn or swapped back; long-run partner distances repair what rigid checks miss.
 3. Re-acquisition: every occluded marker is predicted, from its *rigid partners* when three of them are
    labeled now (Kabsch on the partners' positions when the marker was last seen, i.e. a rigid-body fill;
    the most accurate prediction there is and free of calibration error), else from the fitted skeleton,
    else by coasting. Remaining points are assigned to these predictions with the Hungarian method inside a
-   gate, so ghosts far from any prediction stay unlabeled.
-4. Checks: a refining fit, and any label the fitted model (or the marker's partners) disagrees with by more
-   than `reject_residual_m` is withdrawn: a wrong label costs more than a missing one.
+   gate, so ghosts far from any prediction stay unlabeled; labels the skeleton disagrees with by more than
+   `reject_residual_m` are withdrawn: a wrong label costs more than a missing one.
+4. The skeleton fit (optimistix Gauss-Newton, `service.solver`) is launched on the frame's final labels when
+   a hidden marker is left that rigid partners cannot place, and at least every `max_skip_frames` frames;
+   otherwise it is skipped. It computes asynchronously (XLA's thread) while the labels are published and
+   is collected at the next frame (`collect`), whose skeleton predictions are its markers carried forward
+   at their velocity. The labels never wait for a solve; the pose waits only for its own.
 
 Rigid partners are learned online: running statistics of every pairwise marker distance (only over
 labeled frames) rank, for each marker, the partners whose distance varies least.
@@ -36,6 +39,7 @@ CHECK_EVERY_FRAMES = 4  # every tracked label is checked against its rigid partn
 REPAIR_EVERY_FRAMES = 4  # the long-run distance repair runs on every 4th frame (a swap lives 3 frames more)
 Z_SUSPECT = 4.0  # a label whose distances to its most rigid partners stray more sigmas than this is suspect
 MAX_SPEED_M_S = 15.0  # markers never move faster; caps velocities estimated from bad predictions
+SKELETON_VELOCITY_GAP_S = 0.05  # two fits at most this far apart give the skeleton markers' velocity
 _BIG = 1e9
 
 
@@ -77,7 +81,13 @@ class TrackState:
     skipped: int = 0  # solves skipped in a row
     frames: int = 0
     last_labeled_t_ns: int = 0
-    fit_rms_m: float = float("nan")
+    fit_rms_m: float = float("nan")  # of the latest completed fit
+    fit_iterations: int = 0  # of the latest completed fit
+    # the fit launched on a frame's final labels, (PendingFit, t_ns), collected at the next frame (`collect`)
+    pending: tuple | None = None
+    skel_pred_m: np.ndarray | None = None  # (M, 3) marker positions of the latest completed fit ...
+    skel_vel_m_s: np.ndarray | None = None  # (M, 3) ... their velocity (from the fit before it) ...
+    skel_t_ns: int = 0  # ... and the time of the frame it fitted
 
 
 @dataclasses.dataclass(frozen=True)
@@ -370,6 +380,7 @@ def step(
 ) -> tuple[TrackState, StepResult]:
     """Label one frame for one subject. `points` (N, 3) finite; `free` (N,) marks points no other subject
     claimed. Mutates and returns `st` (the registry owns it; callers never share a state)."""
+    collect(model, st)
     m = model.n_markers
     dt = float(np.clip((t_ns - st.last_t_ns) * 1e-9, 1e-4, 0.5)) if st.frames or st.last_t_ns else 1.0 / 120
     point_index = np.full(m, -1)
@@ -420,22 +431,10 @@ def step(
         cur[bad] = np.nan
     missing = ~labeled & st.ever_seen
 
-    # 3. Skeleton fit, when something is unexplained or the skip budget is spent.
-    solved, iterations, residual = False, 0, float("nan")
-    skel_pred = None
-    if model.has_skeleton and solver is not None:
-        # Unexplained = an occluded marker its rigid partners cannot place: only the skeleton can. (A
-        # ghost near the body is not: no fit explains it, and solving for every ghost costs 4x.)
-        loose = (np.nan_to_num(spread) > LOOSE_SPREAD_M) & (st.fit_rms_m < SKELETON_TRUSTED_RMS_M)
-        unexplained = bool((missing & (~has_rigid | loose)).any())
-        if unexplained or st.skipped >= config.max_skip_frames:
-            fit = _fit(model, st, solver, cur, labeled)
-            if fit is not None:
-                solved, iterations, residual = True, fit.iterations, fit.residual_rms_m
-                skel_pred = fit.predicted_m
-            st.skipped = 0
-        else:
-            st.skipped += 1
+    # 3. The skeleton's word on this frame: the latest fit (launched on an earlier frame's final labels and
+    #    computed while they were published), carried forward at its markers' velocity, if it is recent.
+    skel_pred = _skeleton_now(st, t_ns, dt) if model.has_skeleton else None
+    residual = st.fit_rms_m
 
     # 4. Re-acquire occluded markers (Hungarian on predictions, gated).
     coast = st.pos_m + st.vel_m_s * dt * 0.5
@@ -474,13 +473,7 @@ def step(
         labeled = point_index >= 0
         cur = _gather(points, point_index)
 
-    # 5. Refine and reject labels the model disagrees with.
-    if solved and len(rows) >= 3:  # a second fit only when re-acquisition added much (it costs ~1 ms)
-        fit = _fit(model, st, solver, cur, labeled)
-        if fit is not None:
-            iterations += fit.iterations
-            residual = fit.residual_rms_m
-            skel_pred = fit.predicted_m
+    # 5. Reject labels the model disagrees with.
     if skel_pred is not None and residual < 0.5 * config.reject_residual_m:
         # the model's word counts only where no rigid partners can speak for a marker
         err = np.linalg.norm(np.where(labeled[:, None], cur - skel_pred, 0.0), axis=1)
@@ -498,14 +491,26 @@ def step(
     predicted = st.pos_m.copy()
     if skel_pred is not None:
         predicted = np.where(labeled[:, None], skel_pred, predicted)
+
+    # 7. Launch the skeleton fit on the final labels when a hidden marker is left that its rigid partners
+    #    cannot place (the fit will place it from the next frame on), or when the skip budget is spent.
+    solved = False
+    if model.has_skeleton and solver is not None:
+        missing = ~labeled & st.ever_seen
+        loose = (np.nan_to_num(spread) > LOOSE_SPREAD_M) & (st.fit_rms_m < SKELETON_TRUSTED_RMS_M)
+        if (missing & (~has_rigid | loose)).any() or st.skipped >= config.max_skip_frames:
+            solved = _launch(model, st, solver, cur, labeled, t_ns)
+            st.skipped = 0
+        else:
+            st.skipped += 1
     source = np.where(point_index >= 0, np.where(reacquired, 2, 1), 0).astype(np.int8)
     return st, StepResult(
         source=source,
         point_index=point_index.astype(np.int32),
         predicted_m=predicted,
         solved=solved,
-        iterations=iterations,
-        residual_m=residual,
+        iterations=st.fit_iterations,
+        residual_m=st.fit_rms_m,
     )
 
 
@@ -514,30 +519,33 @@ def observe(
 ) -> tuple[TrackState, StepResult]:
     """Take given labels as truth (a capture system's own labels, an operator's corrections): `cur` (M, 3)
     holds the labeled positions, NaN where a marker has no label. Keeps every statistic `step` keeps."""
+    collect(model, st)
     dt = float(np.clip((t_ns - st.last_t_ns) * 1e-9, 1e-4, 0.5))
     labeled = np.isfinite(cur[:, 0])
     missing = ~labeled & st.ever_seen
     rpred, _ = rigid_predictions(st, cur, labeled, missing)
-    fallback = np.where(np.isfinite(rpred[:, :1]), rpred, st.pos_m)
-    solved, iterations, residual = False, 0, float("nan")
+    skel_pred = _skeleton_now(st, t_ns, dt) if model.has_skeleton else None
+    fallback = np.where(np.isfinite(rpred[:, :1]), rpred, st.pos_m if skel_pred is None else skel_pred)
+    _commit(st, cur, labeled, fallback, t_ns, dt)
+    solved = False
     if model.has_skeleton and solver is not None and st.skipped >= min(config.max_skip_frames, 2):
-        fit = _fit(model, st, solver, cur, labeled)
+        solved = _launch(model, st, solver, cur, labeled, t_ns)
         st.skipped = 0
-        if fit is not None:
-            solved, iterations, residual = True, fit.iterations, fit.residual_rms_m
-            fallback = np.where(np.isfinite(rpred[:, :1]), rpred, fit.predicted_m)
     else:
         st.skipped += 1
-    _commit(st, cur, labeled, fallback, t_ns, dt)
     source = np.where(labeled, 3, 0).astype(np.int8)
-    return st, StepResult(np.full(model.n_markers, -1, np.int32), st.pos_m.copy(), solved, iterations, residual, source)
+    return st, StepResult(np.full(model.n_markers, -1, np.int32), st.pos_m.copy(), solved, st.fit_iterations, st.fit_rms_m, source)
 
 
 def _commit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, fallback: np.ndarray, t_ns: int, dt: float) -> None:
     """Fold one frame's labels into the state: positions, velocities, partner statistics, snapshots."""
     both = labeled & st.labeled
-    # velocity of a re-acquired marker: from its last prediction, which followed its partners' motion
-    new_vel = np.where(labeled[:, None], (cur - st.pos_m) / dt, st.vel_m_s * 0.8)
+    # A velocity needs two observations. A re-acquired marker's last position is only a prediction (from
+    # partners that may have been hidden too, or coasting): (cur - prediction) / dt would turn the
+    # prediction's error into speed, and the next frame's NNT would follow it, through a gate it also
+    # widens, onto a neighbour. So a re-acquired marker keeps its last measured velocity (decayed while hidden).
+    back = labeled & ~st.labeled
+    new_vel = np.where(both[:, None], (cur - st.pos_m) / dt, st.vel_m_s * np.where(back, 1.0, 0.8)[:, None])
     speed = np.linalg.norm(new_vel, axis=1, keepdims=True)
     new_vel *= np.minimum(1.0, MAX_SPEED_M_S / np.maximum(speed, 1e-9))
     # light smoothing against noise, not so much that fast markers lag
@@ -556,8 +564,54 @@ def _commit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, fallback: np.n
     _snapshot(st, cur, labeled)
 
 
+def _launch(model: SubjectModel, st: TrackState, solver, cur: np.ndarray, labeled: np.ndarray, t_ns: int) -> bool:
+    """Start a Gauss-Newton solve from the current pose on this frame's labels; `collect` takes its result."""
+    if labeled.sum() < 4:
+        return False
+    st.pending = (solver.launch(st.t_root_m, st.R_parent_segment, model.joint_offsets_m, model.marker_segment,
+                                model.marker_offsets_m, cur, labeled), t_ns)
+    return True
+
+
+def collect(model: SubjectModel, st: TrackState):
+    """Finish the fit launched on an earlier frame (waiting for it if need be) and take its pose, its marker
+    predictions and their velocity (from the previous fit when it was recent). A failed solve keeps the
+    pose: never a frozen or exploding skeleton. Returns the FitResult, or None (nothing pending, failed).
+    Idempotent; in place."""
+    if st.pending is None:
+        return None
+    pending, t_ns = st.pending
+    st.pending = None
+    fit = pending.result()
+    if not fit.ok or not np.isfinite(fit.residual_rms_m) or len(fit.predicted_m) != model.n_markers:
+        st.skel_pred_m = None
+        return None
+    vel = np.zeros_like(fit.predicted_m)
+    gap_s = (t_ns - st.skel_t_ns) * 1e-9
+    if st.skel_pred_m is not None and len(st.skel_pred_m) == model.n_markers and 0 < gap_s <= SKELETON_VELOCITY_GAP_S:
+        vel = (fit.predicted_m - st.skel_pred_m) / gap_s
+        speed = np.linalg.norm(vel, axis=1, keepdims=True)
+        vel *= np.minimum(1.0, MAX_SPEED_M_S / np.maximum(speed, 1e-9))
+    st.t_root_m, st.R_parent_segment = fit.t_world_root_m, fit.R_parent_segment
+    st.fit_rms_m, st.fit_iterations = fit.residual_rms_m, fit.iterations
+    st.skel_pred_m, st.skel_vel_m_s, st.skel_t_ns = fit.predicted_m, vel, t_ns
+    return fit
+
+
+def _skeleton_now(st: TrackState, t_ns: int, dt: float) -> np.ndarray | None:
+    """The latest fit's marker positions carried forward to t_ns, if that fit is at most ~2 frames old."""
+    if st.skel_pred_m is None or st.skel_vel_m_s is None:
+        return None
+    age_s = (t_ns - st.skel_t_ns) * 1e-9
+    if not 0 <= age_s <= 2.5 * dt:
+        return None
+    return st.skel_pred_m + st.skel_vel_m_s * age_s
+
+
 def _fit(model: SubjectModel, st: TrackState, solver, cur: np.ndarray, labeled: np.ndarray):
-    """One Gauss-Newton solve from the current pose; on failure keep the pose (never freeze or explode)."""
+    """One blocking Gauss-Newton solve from the current pose (calibration, refinement); on failure keep
+    the pose. Any launched fit is collected first, so it cannot overwrite this one."""
+    collect(model, st)
     if labeled.sum() < 4:
         return None
     fit = solver.fit(
@@ -567,5 +621,6 @@ def _fit(model: SubjectModel, st: TrackState, solver, cur: np.ndarray, labeled: 
         return None
     st.t_root_m = fit.t_world_root_m
     st.R_parent_segment = fit.R_parent_segment
-    st.fit_rms_m = fit.residual_rms_m
+    st.fit_rms_m, st.fit_iterations = fit.residual_rms_m, fit.iterations
+    st.skel_pred_m = None  # a fit of another frame than the last: nothing to carry forward
     return fit
