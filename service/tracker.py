@@ -26,6 +26,7 @@ import dataclasses
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial.distance import cdist
 
 from service.config import EngineConfig
 
@@ -41,6 +42,11 @@ Z_SUSPECT = 4.0  # a label whose distances to its most rigid partners stray more
 MAX_SPEED_M_S = 15.0  # markers never move faster; caps velocities estimated from bad predictions
 SKELETON_VELOCITY_GAP_S = 0.05  # two fits at most this far apart give the skeleton markers' velocity
 _BIG = 1e9
+
+
+def _norm(v: np.ndarray) -> np.ndarray:
+    """Euclidean norm over the last axis (np.linalg.norm costs several times more on these small arrays)."""
+    return np.sqrt(np.einsum("...i,...i->...", v, v))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,21 +145,19 @@ def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m
 
 
 def _update_distances(st: TrackState, pos: np.ndarray, labeled: np.ndarray, alpha_min: float = 0.02) -> None:
-    """Running mean/variance of pairwise distances among labeled markers (count-based, then EMA)."""
-    idx = np.flatnonzero(labeled)
-    if len(idx) < 2:
+    """Running mean/variance of pairwise distances among labeled markers (count-based, then EMA). Masked
+    updates of the whole (M, M) matrices: cheaper than gathering and scattering the labeled block."""
+    if labeled.sum() < 2:
         return
-    p = pos[idx]
-    d = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
-    ix = np.ix_(idx, idx)
-    n = st.dist_n[ix] + 1.0
-    alpha = np.maximum(1.0 / n, alpha_min)
-    mean = st.dist_mean_m[ix]
-    delta = d - mean
-    mean = mean + alpha * delta
-    st.dist_var_m2[ix] = (1 - alpha) * (st.dist_var_m2[ix] + alpha * delta * delta)
-    st.dist_mean_m[ix] = mean
-    st.dist_n[ix] = n
+    p = np.where(labeled[:, None], pos, 0.0)
+    d = cdist(p, p)
+    pair = labeled[:, None] & labeled[None, :]
+    n = st.dist_n + pair
+    alpha = np.where(pair, np.maximum(1.0 / np.maximum(n, 1.0), alpha_min), 0.0)
+    delta = d - st.dist_mean_m
+    st.dist_mean_m += alpha * delta
+    st.dist_var_m2 = (1 - alpha) * (st.dist_var_m2 + alpha * delta * delta)
+    st.dist_n = n
 
 
 def _update_partners(st: TrackState) -> None:
@@ -223,7 +227,9 @@ def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, whic
     ok = n >= 3
     if not ok.any():
         return pred, spread
-    rows, part, src, dst, w, self_src, n = rows[ok], pk[ok], src[ok], dst[ok], w[ok], self_src[ok], n[ok]
+    if not ok.all():
+        rows, pk, src, dst, w, self_src = rows[ok], pk[ok], src[ok], dst[ok], w[ok], self_src[ok]
+    part = pk
     # partners weighted by how rigidly they keep their distance to the marker (sigma + 3 mm of skin)
     sigma = np.sqrt(st.dist_var_m2[rows[:, None], part])
     R, cs, cd, sp = _kabsch(src, dst, w, w / (sigma + 0.003) ** 2)
@@ -249,7 +255,7 @@ def distance_misfit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, rows: 
     valid = (part >= 0) & labeled[pk] & labeled[idx][:, None] & (st.dist_n[r, pk] >= 10)
     sigma = np.sqrt(st.dist_var_m2[r, pk]) + 0.003
     c0 = np.where(labeled[:, None], cur, 0.0)
-    d = np.linalg.norm(c0[idx][:, None, :] - c0[pk], axis=2)
+    d = _norm(c0[idx][:, None, :] - c0[pk])
     z = np.abs(d - st.dist_mean_m[r, pk]) / sigma
     # keep the 3 most rigid valid partners of each marker
     order = np.argsort(np.where(valid, sigma, np.inf), axis=1)[:, :3]
@@ -284,7 +290,7 @@ def _repair_by_distances(
     markers moved together since. In place."""
     labeled = point_index >= 0
     z = distance_misfit(st, cur, labeled)
-    sus = np.flatnonzero(labeled & (np.nan_to_num(z) > Z_SUSPECT))
+    sus = np.flatnonzero(labeled & (z > Z_SUSPECT))  # NaN compares False
     if len(sus) == 0:
         return
     free_idx = np.flatnonzero(free)
@@ -349,7 +355,7 @@ def _assign(pred: np.ndarray, gates: np.ndarray, points: np.ndarray, cand: np.nd
     cols = np.flatnonzero(cand)
     if len(rows) == 0 or len(cols) == 0:
         return empty, empty, np.empty(0, bool)
-    d2 = np.sum((pred[rows, None, :] - points[None, cols, :]) ** 2, axis=2)
+    d2 = cdist(pred[rows], points[cols], "sqeuclidean")
     g2 = gates[rows, None] ** 2
     # Quick reject of rows/cols with nothing in range keeps the Hungarian problem small.
     ok = d2 < g2
@@ -388,14 +394,14 @@ def step(
 
     # 1. NNT: constant-velocity prediction of markers labeled last frame.
     pred_track = st.pos_m + st.vel_m_s * dt
-    speed = np.linalg.norm(st.vel_m_s, axis=1)
+    speed = _norm(st.vel_m_s)
     gates = np.where(st.labeled, config.nnt_gate_m + 0.35 * speed * dt, 0.0)
     rows, cols, contested = _assign(pred_track, gates, points, ~taken)
     point_index[rows] = cols
     taken[cols] = True
     # a label needs the rigid check when it was a choice, or when its point is not where the marker was
     # heading (a ghost caught in the gate as the marker vanished); a full check every CHECK_EVERY frames
-    resid = np.linalg.norm(points[cols] - pred_track[rows], axis=1)
+    resid = _norm(points[cols] - pred_track[rows])
     suspicious = np.zeros(m, bool)
     suspicious[rows] = contested | (resid > CHECK_RESIDUAL_M + 0.1 * speed[rows] * dt)
 
@@ -404,25 +410,27 @@ def step(
 
     # 2. Predict every marker from its rigid partners; a tracked label its partners disagree with (a swap
     #    of two close markers, a ghost caught while the marker hid) is withdrawn and re-assigned below.
-    check = st.ever_seen & (~labeled | suspicious | (st.frames % CHECK_EVERY_FRAMES == 0))
+    # (the full checks are spread over frames by marker index, so no frame carries them all: a flat p99)
+    check = st.ever_seen & (~labeled | suspicious | (np.arange(m) % CHECK_EVERY_FRAMES == st.frames % CHECK_EVERY_FRAMES))
     rpred, spread = rigid_predictions(st, cur, labeled, check)
     has_rigid = np.isfinite(rpred[:, 0])
-    err = np.where(labeled & has_rigid, np.linalg.norm(np.nan_to_num(cur - rpred), axis=1), 0.0)
+    spread0 = np.where(has_rigid, spread, 0.0)
+    err = np.where(labeled & has_rigid, _norm(cur - rpred), 0.0)
     _unswap(point_index, cur, rpred, err, config.rigid_check_m)
-    if st.frames % REPAIR_EVERY_FRAMES == 0:
+    if st.frames % REPAIR_EVERY_FRAMES == REPAIR_EVERY_FRAMES // 2:
         _repair_by_distances(st, point_index, cur, points, ~taken)
         taken = ~free.copy()
         taken[point_index[point_index >= 0]] = True
     labeled = point_index >= 0
-    err = np.where(labeled & has_rigid, np.linalg.norm(np.nan_to_num(cur - rpred), axis=1), 0.0)
-    tol = config.rigid_check_m + 4.0 * np.nan_to_num(spread)
+    err = np.where(labeled & has_rigid, _norm(cur - rpred), 0.0)
+    tol = config.rigid_check_m + 4.0 * spread0
     bad = labeled & has_rigid & (err > tol)
     # A re-acquired label is on probation: its distances to its partners are held to the long-run norm for
     # PROBATION_FRAMES, so a wrong re-acquisition cannot become its own reference and persist.
     on_probation = labeled & (st.provisional > 0)
     if on_probation.any():
         z = distance_misfit(st, cur, labeled, np.flatnonzero(on_probation))
-        bad |= on_probation & (np.nan_to_num(z) > Z_SUSPECT)
+        bad |= on_probation & (z > Z_SUSPECT)
     st.provisional = np.maximum(st.provisional - 1, 0)
     if bad.any():
         taken[point_index[bad]] = False
@@ -441,14 +449,14 @@ def step(
     pred_missing = np.where(has_rigid[:, None], rpred, np.nan)
     # the gate widens with the partners' misfit; when a well-fitting skeleton can take over from loose
     # partners (below), not beyond MAX_GATE_FACTOR: loose partners place a marker poorly
-    gate_rigid = 0.8 * config.reacquire_gate_m + 3.0 * np.nan_to_num(spread)
+    gate_rigid = 0.8 * config.reacquire_gate_m + 3.0 * spread0
     if skel_pred is not None and residual < SKELETON_TRUSTED_RMS_M:
         gate_rigid = np.minimum(gate_rigid, MAX_GATE_FACTOR * config.reacquire_gate_m)
     gate_missing = np.where(has_rigid, gate_rigid, 0.0)
     if skel_pred is not None:
         # the skeleton speaks for markers with no rigid partners in view, and for those whose partners
         # have moved against each other since (spread), when the skeleton itself fits well
-        loose = has_rigid & (np.nan_to_num(spread) > LOOSE_SPREAD_M) & (residual < SKELETON_TRUSTED_RMS_M)
+        loose = has_rigid & (spread0 > LOOSE_SPREAD_M) & (residual < SKELETON_TRUSTED_RMS_M)
         use_skel = missing & (~has_rigid | loose)
         pred_missing[use_skel] = skel_pred[use_skel]
         gate_missing[use_skel] = config.reacquire_gate_m
@@ -464,7 +472,7 @@ def step(
     if len(rows):
         point_index[rows] = cols
         cur = _gather(points, point_index)
-        wrong = np.nan_to_num(distance_misfit(st, cur, point_index >= 0, rows)[rows]) > Z_SUSPECT
+        wrong = distance_misfit(st, cur, point_index >= 0, rows)[rows] > Z_SUSPECT
         point_index[rows[wrong]] = -1
         rows, cols = rows[~wrong], cols[~wrong]
         reacquired[rows] = True
@@ -476,7 +484,7 @@ def step(
     # 5. Reject labels the model disagrees with.
     if skel_pred is not None and residual < 0.5 * config.reject_residual_m:
         # the model's word counts only where no rigid partners can speak for a marker
-        err = np.linalg.norm(np.where(labeled[:, None], cur - skel_pred, 0.0), axis=1)
+        err = _norm(np.where(labeled[:, None], cur - skel_pred, 0.0))
         bad = labeled & check & ~has_rigid & (err > config.reject_residual_m)
         if bad.any():
             point_index[bad] = -1
@@ -497,7 +505,7 @@ def step(
     solved = False
     if model.has_skeleton and solver is not None:
         missing = ~labeled & st.ever_seen
-        loose = (np.nan_to_num(spread) > LOOSE_SPREAD_M) & (st.fit_rms_m < SKELETON_TRUSTED_RMS_M)
+        loose = (spread0 > LOOSE_SPREAD_M) & (st.fit_rms_m < SKELETON_TRUSTED_RMS_M)
         if (missing & (~has_rigid | loose)).any() or st.skipped >= config.max_skip_frames:
             solved = _launch(model, st, solver, cur, labeled, t_ns)
             st.skipped = 0
@@ -546,7 +554,7 @@ def _commit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, fallback: np.n
     # widens, onto a neighbour. So a re-acquired marker keeps its last measured velocity (decayed while hidden).
     back = labeled & ~st.labeled
     new_vel = np.where(both[:, None], (cur - st.pos_m) / dt, st.vel_m_s * np.where(back, 1.0, 0.8)[:, None])
-    speed = np.linalg.norm(new_vel, axis=1, keepdims=True)
+    speed = _norm(new_vel)[:, None]
     new_vel *= np.minimum(1.0, MAX_SPEED_M_S / np.maximum(speed, 1e-9))
     # light smoothing against noise, not so much that fast markers lag
     st.vel_m_s = np.where(both[:, None], 0.7 * new_vel + 0.3 * st.vel_m_s, new_vel)
