@@ -139,6 +139,9 @@ class PoseSolver:
         self.rtol = rtol
         # Per-parameter prior weights: translation [1/m scale] weaker than rotations [rad].
         self.prior_w = np.concatenate([np.full(3, 0.2 * prior_weight), np.full(3 * N_SEGMENTS, prior_weight)])
+        self._prior_w = jax.device_put(self.prior_w)
+        self._ones = jax.device_put(np.ones(max_markers, DTYPE))
+        self._constants: list = []  # [((joint_offsets, marker_segment, marker_offsets), device arrays)], newest first
 
     def pad(self, a: np.ndarray, fill=0.0) -> np.ndarray:
         out = np.full((self.max_markers,) + a.shape[1:], fill, dtype=DTYPE if a.dtype.kind == "f" else a.dtype)
@@ -174,22 +177,36 @@ class PoseSolver:
         thread, without the GIL, so the caller's numpy work and the solve share the two cores). Every input
         is copied into fresh arrays here, so the caller may change its own afterwards."""
         m = len(marker_segment)
-        if weight is None:
-            weight = np.ones(m)
+        joints, segments, offsets = self._model_constants(joint_offsets_m, marker_segment, marker_offsets_m)
         outputs = _solve(
             np.array(t0_m, DTYPE),
             np.array(R0_parent_segment, DTYPE),
-            np.array(joint_offsets_m, DTYPE),
-            self.pad(np.asarray(marker_segment, np.int32)),
-            self.pad(np.asarray(marker_offsets_m, DTYPE)),
+            joints,
+            segments,
+            offsets,
             self.pad(np.nan_to_num(np.asarray(observed_m, DTYPE))),
             self.pad(np.asarray(mask, bool), False),
-            self.pad(np.asarray(weight, DTYPE)),
-            self.prior_w,
+            self._ones if weight is None else self.pad(np.asarray(weight, DTYPE)),
+            self._prior_w,
             self.rtol,
             max_steps=self.max_steps,
         )
         return PendingFit(outputs, m)
+
+    def _model_constants(self, joint_offsets_m, marker_segment, marker_offsets_m):
+        """A subject model's arrays, padded and on the device once per model rather than once per solve
+        (it halves the dispatch cost). Cached by identity: models are immutable and replaced, not edited."""
+        key = (joint_offsets_m, marker_segment, marker_offsets_m)
+        for k, v in self._constants:
+            if all(a is b for a, b in zip(k, key)):
+                return v
+        v = tuple(jax.device_put(a) for a in (
+            np.array(joint_offsets_m, DTYPE),
+            self.pad(np.asarray(marker_segment, np.int32)),
+            self.pad(np.asarray(marker_offsets_m, DTYPE)),
+        ))
+        self._constants = [(key, v)] + self._constants[:31]
+        return v
 
     def predict(self, t_m, R_parent_segment, joint_offsets_m, marker_segment, marker_offsets_m) -> np.ndarray:
         """(M, 3) marker positions of a pose, through the same compiled FK."""
