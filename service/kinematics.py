@@ -57,20 +57,39 @@ def marker_positions(
 
 
 def matrix_to_quat_xyzw(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) -> (..., 4) unit quaternions x, y, z, w (numpy; outputs only, off the hot path)."""
-    from scipy.spatial.transform import Rotation
+    """(..., 3, 3) rotations -> (..., 4) unit quaternions x, y, z, w with w >= 0 (numpy).
 
+    Shepperd's method, vectorised: of the four algebraically equal formulas each quaternion takes the
+    one with the largest square root, which is the numerically stable one. Hand-written because
+    scipy's Rotation costs ~0.3 ms for 14 matrices, this ~0.03 ms, on every solved frame's pose."""
     shape = R.shape[:-2]
-    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat().reshape(shape + (4,))
+    R = np.asarray(R, np.float64).reshape(-1, 3, 3)
+    m00, m11, m22 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
+    d21, d02, d10 = R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]
+    s01, s02, s12 = R[:, 0, 1] + R[:, 1, 0], R[:, 0, 2] + R[:, 2, 0], R[:, 1, 2] + R[:, 2, 1]
+    diag = np.stack([m00 + m11 + m22, m00 - m11 - m22, m11 - m00 - m22, m22 - m00 - m11], axis=1)
+    k = np.argmax(diag, axis=1)
+    r = 2.0 * np.sqrt(np.maximum(1.0 + diag[np.arange(len(R)), k], 1e-300))  # 4 x the largest component
+    cases = np.stack([
+        np.stack([d21, d02, d10, 0.25 * r * r], axis=1),  # w largest
+        np.stack([0.25 * r * r, s01, s02, d21], axis=1),  # x largest
+        np.stack([s01, 0.25 * r * r, s12, d02], axis=1),  # y largest
+        np.stack([s02, s12, 0.25 * r * r, d10], axis=1),  # z largest
+    ])  # (4, N, 4), each row times r
+    q = cases[k, np.arange(len(R))] / r[:, None]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q *= np.where(q[:, 3:] < 0, -1.0, 1.0)
+    return q.reshape(shape + (4,))
 
 
 def joint_angles(R_parent_segment: np.ndarray) -> np.ndarray:
     """(14, 3, 3) relative rotations -> (13, 3) intrinsic YXZ angles [rad] of every ball joint
-    (protocol.skeleton.JOINT_ANGLE_CONVENTION)."""
-    import warnings
-
-    from scipy.spatial.transform import Rotation
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)  # gimbal lock at +-90 deg middle angle: still valid angles
-        return Rotation.from_matrix(R_parent_segment[1:]).as_euler("YXZ")
+    (protocol.skeleton.JOINT_ANGLE_CONVENTION): R = Ry(a) Rx(b) Rz(c), b in [-pi/2, pi/2]. At gimbal lock
+    (|b| = pi/2) c is 0 and a carries the whole turn. Closed form, hand-written for the same reason as
+    `matrix_to_quat_xyzw`."""
+    R = np.asarray(R_parent_segment, np.float64)[1:]
+    b = np.arcsin(np.clip(-R[:, 1, 2], -1.0, 1.0))
+    locked = np.abs(R[:, 1, 2]) > 1.0 - 1e-12
+    a = np.where(locked, np.arctan2(-R[:, 2, 0], R[:, 0, 0]), np.arctan2(R[:, 0, 2], R[:, 2, 2]))
+    c = np.where(locked, 0.0, np.arctan2(R[:, 1, 0], R[:, 1, 1]))
+    return np.stack([a, b, c], axis=1)

@@ -116,3 +116,17 @@ def test_joint_angles_and_quaternions_of_a_known_rotation():
     q = matrix_to_quat_xyzw(R)
     np.testing.assert_allclose(q[0], [0, 0, 0, 1], atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-12)
+
+
+def test_quaternions_and_angles_match_scipy_on_random_rotations():
+    """The hand-written conversions agree with scipy's (quaternions up to sign: ours have w >= 0)."""
+    rot = Rotation.random(5000, random_state=3)
+    q = matrix_to_quat_xyzw(rot.as_matrix())
+    ref = rot.as_quat()
+    ref *= np.where(ref[:, 3:] < 0, -1.0, 1.0)
+    np.testing.assert_allclose(q, ref, atol=1e-12)
+    half_turns = Rotation.from_rotvec(np.pi * np.eye(3))  # where the w-formula breaks down
+    q = matrix_to_quat_xyzw(half_turns.as_matrix())
+    np.testing.assert_allclose(np.abs(q), np.abs(half_turns.as_quat()), atol=1e-12)
+    R = np.concatenate([np.eye(3)[None], rot.as_matrix()[:13]])
+    np.testing.assert_allclose(joint_angles(R), rot[:13].as_euler("YXZ"), atol=1e-12)
