@@ -48,6 +48,7 @@ MARKER_BASE_SET = "cmu41"  # the synthetic performer's marker set the larger set
 # marker's segment frame, so every copy is rigidly carried by the same segment as its original (a shift
 # in world coordinates would not be, and would measure a mis-fitting skeleton instead of a large one).
 MARKER_COPY_SHIFTS_M = ((0.03, 0.025, 0.02), (-0.025, -0.03, 0.025))
+COST_S = 20.0  # seconds of frames for the per-frame engine cost (after the seed)
 REPEATS = 3  # runs per throughput, start-up and latency figure (1 with --quick); the median is reported
 LATENCY_S = 20.0  # seconds of frames per latency run (after the 2 s seed); 3 runs of 20 s keep the suite short
 SEED_S = 2.0
@@ -250,6 +251,70 @@ def label_throughput(data_dir: Path, file: str, max_skip_frames: int | None) -> 
     if code != 0:
         return {"error": f"exit {code}: {err.strip()[-200:]}"}
     return {"file": file, "frames": rec.n_frames, "wall_s": wall, "fps": rec.n_frames / wall, "peak_rss_mb": rss}
+
+
+def engine_cost(data_dir: Path, cache_dir: str, seconds: float = COST_S) -> dict:
+    """Per-frame engine cost (issue: one 41-marker subject at L2), in a fresh process with default XLA
+    threading: `Engine.step` and `Engine.complete` called as the daemon calls them, frames paced at the
+    recording's rate (an unpaced loop would count waits for the previous frame's solve and for the
+    refinement worker, which a live stream never sees). Reports the labels path (`step`: the frame's
+    labels known), the pose path (`step` + `complete`: its pose known too) and the process CPU time per
+    frame (all threads: the frame loop, XLA's solves, the refinement worker)."""
+    cmd = [sys.executable, "-m", "benchmarks.speed", "engine-cost", str(data_dir), cache_dir, str(seconds)]
+    env = {**_python_env(), "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}  # as `mocap-service` sets them
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    out, err = proc.communicate(timeout=600)
+    if proc.returncode != 0:
+        return {"error": f"exit {proc.returncode}: {err.decode(errors='replace').strip()[-200:]}"}
+    import json
+
+    return json.loads(out.decode().strip().splitlines()[-1])
+
+
+def _engine_cost_here(data_dir: Path, cache_dir: str, seconds: float) -> dict:
+    import resource
+
+    from recordings.c3d import read_c3d
+    from service.daemon import enable_compilation_cache
+    from service.engine import Engine, FrameInput
+
+    enable_compilation_cache(cache_dir)
+    rec = read_c3d(data_dir / LATENCY_FILE)
+    seq = corrupt(rec, "L2", 1)
+    n_seed = int(round(SEED_S * seq.rate_hz))
+    n = min(len(seq.points_m), n_seed + int(seconds * seq.rate_hz))
+    engine = Engine()
+    engine.warm_up()
+    period_s = 1.0 / seq.rate_hz
+    step_ms, pose_ms, solved = [], [], 0
+    cpu0 = start = None
+    for f in range(n):
+        pts = seq.points_m[f]
+        if pts is None:
+            continue
+        labels = [seq.marker_names[t] if t >= 0 else "" for t in seq.truth[f]] if f < n_seed else None
+        frame = FrameInput("bench", f, int(f * 1e9 * period_s), pts, labels)
+        if f == n_seed:
+            cpu0, start = time.process_time(), time.perf_counter() - f * period_s
+        if start is not None:
+            while time.perf_counter() < start + f * period_s:  # paced like a live stream
+                time.sleep(max(0.0, start + f * period_s - time.perf_counter() - 0.0005))
+        t0 = time.perf_counter()
+        outputs, _ = engine.step(frame)
+        t1 = time.perf_counter()
+        outputs = engine.complete(outputs)
+        t2 = time.perf_counter()
+        if f >= n_seed:
+            step_ms.append(1e3 * (t1 - t0))
+            pose_ms.append(1e3 * (t2 - t0))
+            solved += any(o.solved for o in outputs)
+    cpu_ms = 1e3 * (time.process_time() - cpu0) / max(len(step_ms), 1)
+    a, b = np.array(step_ms), np.array(pose_ms)
+    return {"file": f"{LATENCY_FILE} L2", "frames": len(a), "markers": len(seq.marker_names),
+            "labels_mean_ms": float(a.mean()), "labels_p50_ms": float(np.median(a)), "labels_p99_ms": float(np.percentile(a, 99)),
+            "pose_mean_ms": float(b.mean()), "pose_p50_ms": float(np.median(b)), "pose_p99_ms": float(np.percentile(b, 99)),
+            "cpu_ms_per_frame": cpu_ms, "solved_fraction": solved / max(len(a), 1),
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
 def startup(data_dir: Path, cache_dir: str) -> dict:
@@ -455,6 +520,7 @@ def measure(data_dir: Path, quick: bool, cache_dir: str) -> dict:
         _guarded("label warm-up", label_throughput, data_dir, QUICK_THROUGHPUT_FILE, None)
     out["label_adaptive"] = _repeated("label (adaptive)", runs, label_throughput, data_dir, file, None)
     out["label_every_frame"] = _repeated("label (solve every frame)", runs, label_throughput, data_dir, file, 0)
+    out["engine_cost"] = _repeated("per-frame engine cost", runs, engine_cost, data_dir, cache_dir, 8.0 if quick else COST_S)
     out["startup_cold"] = skipped if quick else _repeated("start-up (cold cache)", runs, _startup_cold, data_dir)
     out["startup_warm"] = _repeated("start-up (warm cache)", runs, startup, data_dir, cache_dir)
     seconds = 6.0 if quick else LATENCY_S
@@ -513,6 +579,14 @@ def report_lines(inproc: dict, speed: dict) -> list[str]:
         res = err(d) or (f"{d['fps']:.0f} frames/s ({runs(d, 'fps', '{:.0f}')}; {d['frames']} frames of {d['file']} "
                          f"in {d['wall_s']:.1f} s, start-up included)")
         lines.append(f"| {title} | {res} | {_f(d.get('peak_rss_mb'), '{:.0f}')} |")
+    d = speed.get("engine_cost", {})
+    res = err(d) or (f"labels {d['labels_mean_ms']:.2f} / {d['labels_p50_ms']:.2f} / {d['labels_p99_ms']:.2f} ms, "
+                     f"labels + pose {d['pose_mean_ms']:.2f} / {d['pose_p50_ms']:.2f} / {d['pose_p99_ms']:.2f} ms "
+                     f"(mean / p50 / p99; labels mean {runs(d, 'labels_mean_ms', '{:.2f}')}); CPU time of all threads "
+                     f"{d['cpu_ms_per_frame']:.2f} ms per frame; {d['frames']} frames of {d['file']} ({d['markers']} markers) "
+                     f"paced at its rate, a solve launched on {100 * d['solved_fraction']:.0f} % of them")
+    lines.append(f"| per-frame engine cost, one subject (`Engine.step`; `+ complete` for the pose) | {res} | "
+                 f"{_f(d.get('peak_rss_mb'), '{:.0f}')} |")
     for key, title in (("startup_cold", "start-up to first labeled frame, empty compile cache"),
                        ("startup_warm", "start-up to first labeled frame, warm compile cache")):
         d = speed.get(key, {})
@@ -561,3 +635,12 @@ def report_lines(inproc: dict, speed: dict) -> list[str]:
               f"Repeated runs: {REPEATS} in the full benchmark, 1 with `--quick`; a latency run replays "
               f"{LATENCY_S:g} s of frames after the seed in the full benchmark (6 s with `--quick`)."]
     return lines
+
+
+if __name__ == "__main__":  # the per-frame cost measurement's own process (see engine_cost)
+    import json
+
+    if len(sys.argv) == 5 and sys.argv[1] == "engine-cost":
+        print(json.dumps(_engine_cost_here(Path(sys.argv[2]), sys.argv[3], float(sys.argv[4]))))
+    else:
+        sys.exit("usage: python3 -m benchmarks.speed engine-cost DATA_DIR CACHE_DIR SECONDS (run by benchmarks.run)")

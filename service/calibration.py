@@ -18,6 +18,8 @@ import dataclasses
 import warnings
 
 import numpy as np
+import scipy.linalg
+import scipy.sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
@@ -348,29 +350,43 @@ def refine(
     n_unk = 3 * M + 3 * n_j + 3 * F
     # One 3-row block per observation, built with array indexing (no Python loop per observation: this
     # runs on a worker thread beside the frame loop and must not hold the interpreter lock for long).
+    # The system is sparse (a row touches its marker's offset, the joints above its segment and its frame's
+    # root): it is assembled sparse and solved through its normal equations (n_unk ~ 300, Cholesky), ~1000x
+    # cheaper than a dense SVD least squares of ~5000 x 300, which also let BLAS threads fight the frame loop.
     f_obs, i_obs = np.nonzero(np.isfinite(positions_m[..., 0]))
     n_obs = len(f_obs)
     seg = marker_segment[i_obs]
-    A = np.zeros((3 * n_obs, n_unk))
     r3 = 3 * np.arange(n_obs)[:, None] + np.arange(3)  # (N, 3) row indices of each block
     c3 = np.arange(3)
-    A[r3[:, :, None], (3 * i_obs)[:, None, None] + c3[None, None, :]] = Rs[f_obs, seg]
+    rows, cols, vals = [], [], []
+
+    def block(obs: np.ndarray, col0: np.ndarray, values: np.ndarray) -> None:
+        """3x3 blocks: rows of observations `obs`, columns col0 + 0..2, entries values (len(obs), 3, 3)."""
+        rows.append(np.broadcast_to(r3[obs][:, :, None], values.shape).ravel())
+        cols.append(np.broadcast_to(col0[:, None, None] + c3[None, None, :], values.shape).ravel())
+        vals.append(values.ravel())
+
+    everyone = np.arange(n_obs)
+    block(everyone, 3 * i_obs, Rs[f_obs, seg])
     anc = np.array([[k in chain[s_] for k in range(len(PARENTS))] for s_ in range(len(PARENTS))])
     for k in range(1, len(PARENTS)):
-        rows = np.flatnonzero(anc[seg, k])
-        if len(rows):
-            col = 3 * M + 3 * (k - 1)
-            A[r3[rows][:, :, None], col + c3[None, None, :]] = Rs[f_obs[rows], PARENTS[k]]
-    A[r3[:, :, None], (3 * M + 3 * n_j + 3 * f_obs)[:, None, None] + c3[None, None, :]] = np.eye(3)
-    rows = [A]
-    rhs = [positions_m[f_obs, i_obs].reshape(-1)]
+        obs = np.flatnonzero(anc[seg, k])
+        if len(obs):
+            block(obs, np.full(len(obs), 3 * M + 3 * (k - 1)), Rs[f_obs[obs], PARENTS[k]])
+    block(everyone, 3 * M + 3 * n_j + 3 * f_obs, np.broadcast_to(np.eye(3), (n_obs, 3, 3)))
+    A = scipy.sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n_obs, n_unk))
+    b = positions_m[f_obs, i_obs].reshape(-1)
     # prior rows: offsets stay where they were unless the data say otherwise
-    P = np.zeros((3 * M + 3 * n_j, n_unk))
-    P[:, : 3 * M + 3 * n_j] = np.eye(3 * M + 3 * n_j) * prior_weight
+    n_prior = 3 * M + 3 * n_j
     prior_rhs = prior_weight * np.concatenate([marker_offsets_m.reshape(-1), joint_offsets_m[1:].reshape(-1)])
-    A = np.vstack(rows + [P])
-    b = np.concatenate(rhs + [prior_rhs])
-    x, *_ = np.linalg.lstsq(A, b, rcond=None)
+    N = (A.T @ A).toarray()
+    N[np.arange(n_prior), np.arange(n_prior)] += prior_weight**2
+    rhs = A.T @ b
+    rhs[:n_prior] += prior_weight * prior_rhs
+    # the roots of frames with no observation are free: pin them (they touch nothing else)
+    free = np.flatnonzero(np.diag(N) == 0)
+    N[free, free] = 1.0
+    x = scipy.linalg.solve(N, rhs, assume_a="pos")
     marker_offsets = x[: 3 * M].reshape(M, 3)
     joints = joint_offsets_m.copy()
     joints[1:] = x[3 * M : 3 * M + 3 * n_j].reshape(n_j, 3)
