@@ -229,6 +229,7 @@ class Engine:
         )
         for name in order:
             s = self._subjects[name]
+            tracker.collect(s.model, s.state)  # the last frame's fit, before anything reads the pose
             self._maybe_calibrate(s, frame)
             self._maybe_refine(s)
             s.state, res = tracker.step(s.model, s.state, points, free, frame.t_ns, self.config, self.solver)
@@ -265,6 +266,7 @@ class Engine:
         return s, True
 
     def _observe(self, s: _Subject, frame, points, marks, keep, append: bool) -> SubjectOutput:
+        tracker.collect(s.model, s.state)
         cur = _positions(s.model.markers, marks, points)
         if append:
             s.history.append(cur)

@@ -288,3 +288,29 @@ def test_seeded_real_walk_cmu_07_01():
     s = seeded_score(seq)
     assert s.n_true_points > 0
     assert s.accuracy >= 0.99 and s.precision >= 0.995, s.worst_markers()
+
+
+def test_labels_do_not_wait_for_the_fit_and_the_pose_is_its_frames():
+    """`step` returns the labels while the frame's fit still computes; `complete` gives the pose fitted on
+    that frame. Whether or not `complete` is called (the daemon does, `label` need not), the labels are
+    the same, frame for frame."""
+    seq = corrupt(perform(2, marker_set="cmu41", duration_s=4.0).recording, "L1", 2)
+    runs = []
+    for with_pose in (True, False):
+        engine = Engine(EngineConfig(tpose_auto=False))
+        labels, solved_frames, moved = [], 0, 0
+        for f, points in enumerate(seq.points_m):
+            if points is None:
+                continue
+            given = seq.true_labels(f) if f < seq.seed_frames else None
+            outputs, _ = engine.step(FrameInput("default", f, t_ns(f, seq.rate_hz), points, given))
+            labels.append([o.point_index.copy() for o in outputs])
+            if with_pose and outputs and outputs[0].solved and outputs[0].has_pose:
+                done = engine.complete(outputs)[0]
+                solved_frames += 1
+                moved += not np.allclose(done.rotations_xyzw, outputs[0].rotations_xyzw)
+                assert np.isfinite(done.residual_m) and done.iterations >= 1
+        runs.append(labels)
+        if with_pose:
+            assert solved_frames > 20 and moved > 0.5 * solved_frames  # the completed pose is the new fit's
+    assert all(len(a) == len(b) and all(np.array_equal(x, y) for x, y in zip(a, b)) for a, b in zip(*runs))

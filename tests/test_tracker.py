@@ -102,3 +102,21 @@ def test_ghosts_beside_markers_stay_unlabeled():
     got = run_tracker(P, 240, shuffle_seed=3, ghosts_m=ghosts)
     assert not np.any(got[240:] == -2)
     assert np.all(got[240:] == np.arange(P.shape[1]))
+
+
+def test_a_reacquired_marker_keeps_its_measured_velocity():
+    """A velocity needs two observations: a marker found again where its (wrong) prediction was not gets
+    the velocity it was last measured with, not (point - prediction) / dt, which turned prediction errors
+    into speed and walked fast arms onto their neighbours (tennis serve at 50 Hz)."""
+    m = 6
+    st = tracker.new_state(
+        tracker.SubjectModel("P", tuple(f"M{i}" for i in range(m)), np.zeros(m, int), np.zeros((m, 3)), np.zeros((14, 3))),
+        np.zeros((m, 3)), t_ns(0))
+    st.vel_m_s[:] = [1.0, 0.0, 0.0]
+    st.labeled[0] = False  # marker 0 hidden last frame: its position is a prediction, 10 cm off
+    st.pos_m[0] = [0.1, 0.0, 0.0]
+    cur = np.zeros((m, 3))
+    cur[1:] += [1.0 / RATE_HZ, 0.0, 0.0]  # the tracked markers moved at 1 m/s
+    tracker._commit(st, cur, np.ones(m, bool), cur, t_ns(1), 1.0 / RATE_HZ)
+    np.testing.assert_allclose(st.vel_m_s[0], [1.0, 0.0, 0.0])  # not (0 - 0.1) * 120 = -12 m/s
+    np.testing.assert_allclose(st.vel_m_s[1:, 0], 1.0)
