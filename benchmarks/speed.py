@@ -206,13 +206,14 @@ def replay(daemon: DaemonProcess, frames: list, rate_hz: float, first_frame: int
     receiver.stop.set()
     receiver.join()
     pub.close()
-    latency_ms, unanswered = [], 0
+    latency_ms, unanswered, missing = [], 0, []
     for number, t_send in sent.items():
         if number - first_frame < scored_from:
             continue
         got = receiver.received.get(number, [])
         if len(got) < n_subjects:
             unanswered += 1
+            missing.append(number - first_frame)
         else:
             latency_ms.append((sorted(got)[n_subjects - 1] - t_send) * 1e-6)
     lat = np.array(latency_ms) if latency_ms else np.array([np.nan])
@@ -226,7 +227,19 @@ def replay(daemon: DaemonProcess, frames: list, rate_hz: float, first_frame: int
         "unanswered": unanswered,
         "unanswered_fraction": unanswered / max(scored, 1),
         "labeled_mean": float(np.mean(labeled)) if labeled else float("nan"),
+        "unanswered_frames": _spans(missing),
     }
+
+
+def _spans(numbers: list[int]) -> str:
+    """[3, 4, 5, 9] -> "3-5, 9": which frames went unanswered, compactly (where a loss comes from)."""
+    spans: list[list[int]] = []
+    for n in numbers:
+        if spans and n == spans[-1][1] + 1:
+            spans[-1][1] = n
+        else:
+            spans.append([n, n])
+    return ", ".join(f"{a}-{b}" if b > a else f"{a}" for a, b in spans)
 
 
 # ---------------------------------------------------------------------------------------------- measures

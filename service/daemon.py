@@ -48,12 +48,12 @@ LATENCY_WINDOW = 1024
 #: Consecutive frames numbered below the last one after which a stream is taken to have restarted (a
 #: replay looping, a capture system restarted) rather than delivering stale frames.
 RESTART_AFTER_FRAMES = 8
-#: Frames of one stream found waiting that are still all processed, in order. Measured at 120 Hz with
-#: the synthetic performer on the 2-core machine: a step takes ~2.5 ms, but the occasional (re)calibration
-#: takes ~20 ms, leaving 2-3 frames waiting; dropping them cost 0.7 % of frames unanswered, processing them
-#: costs those few frames ~10 ms of extra latency. Beyond this backlog the daemon is really behind and
-#: skips to the newest frame, so latency stays bounded.
-MAX_BACKLOG_FRAMES = 4
+#: Frames of one stream found waiting that are still all processed, in order. A step takes ~1.5 ms, so
+#: a stall of up to 12 frames (100 ms at 120 Hz: a calibration, a slow solve, the machine busy elsewhere)
+#: is worked through within ~2 frame periods and every frame is answered; with 4 (the first setting), the
+#: 30-50 ms stalls this shared 2-core machine shows left ~0.5 % of frames unanswered at 120 Hz. Beyond
+#: this backlog the daemon is really behind and skips to the newest frame, so latency stays bounded.
+MAX_BACKLOG_FRAMES = 12
 #: Longest wait in the poller [s], so a stop request is seen promptly.
 POLL_MAX_S = 0.1
 

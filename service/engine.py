@@ -78,6 +78,7 @@ HISTORY_FRAMES = 240  # labeled frames kept per subject for (re)calibration
 REFINE_RMS_M = 0.012  # a skeleton fitting its markers worse than this [m] RMS is re-aligned ...
 REFINE_EVERY_FRAMES = 240  # ... at most once per this many frames (then twice as long, ...)
 REFINE_APPLY_FRAMES = 120  # a refinement started at frame f takes effect at frame f + this
+CALIBRATE_APPLY_FRAMES = 30  # a calibration (~50 ms of work) started at frame f takes effect at f + this
 DISCOVER_FRAMES = 60  # frames an unexplained point must ride on an automatic subject to become a marker
 
 
@@ -92,6 +93,7 @@ class _Subject:
     next_refine_frame: int = 0
     refine_interval: int = 0  # frames between skeleton refinements (doubles each time)
     refine_job: tuple | None = None  # (future, frame to apply it at)
+    calibration_job: tuple | None = None  # (future, frame to apply it at)
     auto: bool = False  # created from a T-pose: its markers are its own, and it may discover more
     candidates: list = dataclasses.field(default_factory=list)  # unexplained point tracks: [last frame, positions]
 
@@ -278,25 +280,30 @@ class Engine:
         return self._output(s, frame, res, keep)
 
     def _maybe_calibrate(self, s: _Subject, frame) -> None:
-        """Fit a skeleton once an upright pose is in the labeled history; retry every second if not."""
+        """Fit a skeleton once an upright pose is in the labeled history; retry every second if not. The
+        work (~50 ms) runs on the worker thread, like refinement, and takes effect CALIBRATE_APPLY_FRAMES
+        frames after it started (waiting for it then if need be): the frame loop never stalls on it, and
+        `label` and the daemon give the same labels."""
+        if s.calibration_job is not None:
+            future, apply_at = s.calibration_job
+            if s.state.frames < apply_at:
+                return
+            s.calibration_job = None
+            result = future.result()
+            if result is None or len(result[0]) != len(s.model.markers):
+                return
+            seg, off, joints, t_root, R = result
+            s.model = dataclasses.replace(s.model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints, has_skeleton=True)
+            s.state.t_root_m, s.state.R_parent_segment = t_root, R
+            # bring the calibration pose up to now with one solve on the latest labels
+            last = s.history[-1]
+            tracker._fit(s.model, s.state, self.solver, last, np.isfinite(last[:, 0]))
+            return
         if s.model.has_skeleton or s.state.frames < s.next_calibration_frame or len(s.history) < 12:
             return
         s.next_calibration_frame = s.state.frames + 120
-        hist = np.stack(s.history)
-        ref = calibration.fill_reference(hist)
-        ok = np.isfinite(ref[:, 0])
-        try:
-            seg, off, joints, t_root, R = calibration.calibrate(np.where(ok[:, None], ref, np.nan), hist)
-        except calibration.CalibrationError:
-            return
-        # markers never seen yet keep no segment until they are: park them on the pelvis with zero weight
-        off = np.where(ok[:, None], off, 0.0)
-        s.model = dataclasses.replace(s.model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints, has_skeleton=True)
-        s.state.t_root_m, s.state.R_parent_segment = t_root, R
-        # bring the calibration pose up to now with one solve on the latest labels
-        last = hist[-1]
-        lab = np.isfinite(last[:, 0])
-        tracker._fit(s.model, s.state, self.solver, last, lab)
+        job = self._worker().submit(_calibrated, np.stack(s.history))
+        s.calibration_job = (job, s.state.frames + CALIBRATE_APPLY_FRAMES)
 
     def _maybe_refine(self, s: _Subject) -> None:
         """Re-align the skeleton to the recent labeled history when it fits the markers poorly (the
@@ -530,6 +537,19 @@ class Engine:
             has_pose=s.model.has_skeleton,
             source=res.source,
         )
+
+
+def _calibrated(hist: np.ndarray):
+    """(marker_segment, marker_offsets, joint_offsets, t_root, R) of a skeleton calibrated from labeled
+    history (F, M, 3), or None if it shows no usable pose. Pure, for the worker thread."""
+    ref = calibration.fill_reference(hist)
+    ok = np.isfinite(ref[:, 0])
+    try:
+        seg, off, joints, t_root, R = calibration.calibrate(np.where(ok[:, None], ref, np.nan), hist)
+    except calibration.CalibrationError:
+        return None
+    # markers never seen yet keep no segment until they are: park them on the pelvis with zero weight
+    return seg, np.where(ok[:, None], off, 0.0), joints, t_root, R
 
 
 def refined_model(solver, model, hist, t0, R0, n_frames: int = 40, rounds: int = 2):
