@@ -200,8 +200,9 @@ def replay(daemon: DaemonProcess, frames: list, rate_hz: float, first_frame: int
         number = first_frame + k
         msg = pm.Frame(stream="default", frame=number, t_ns=int(round(number * 1e9 / rate_hz)),
                        points=np.asarray(points, np.float32), labels=labels)
+        parts = pm.encode(msg)  # before the clock starts: the latency is from the send
         sent[number] = time.perf_counter_ns()
-        pub.send_multipart(pm.encode(msg))
+        pub.send_multipart(parts)
     time.sleep(0.5)
     receiver.stop.set()
     receiver.join()
@@ -384,6 +385,47 @@ def latency(data_dir: Path, cache_dir: str, seconds: float, max_skip_frames: int
     return result
 
 
+# A stand-in daemon that answers every frame at once with a labels message of 41 markers and does no
+# labeling: what the same client, sockets and protocol cost on this machine (the floor under `latency`).
+_ECHO_DAEMON = """
+import sys
+import numpy as np, zmq
+from protocol import messages as pm
+ctx = zmq.Context()
+sub = ctx.socket(zmq.SUB); sub.setsockopt(zmq.SUBSCRIBE, pm.TOPIC_FRAME); sub.bind(sys.argv[1])
+pub = ctx.socket(zmq.PUB); pub.bind(sys.argv[2])
+m = 41
+names, index, xyz = [f"M{i}" for i in range(m)], np.arange(m, dtype=np.int32), np.zeros((m, 3), np.float32)
+while True:
+    f = pm.decode(sub.recv_multipart())
+    pub.send_multipart(pm.encode(pm.Labels(subject="S", stream=f.stream, frame=f.frame, t_ns=f.t_ns, markers=names,
+                                           point_index=index, positions=xyz, solved=False, predicted=xyz,
+                                           iterations=0, residual_m=0.0)))
+"""
+
+
+def latency_floor(data_dir: Path, seconds: float) -> dict:
+    """`latency`'s replay against `_ECHO_DAEMON` (same frames, rate, client and protocol, no labeling)."""
+    from recordings.c3d import read_c3d
+
+    rec = read_c3d(data_dir / LATENCY_FILE)
+    n = min(rec.n_frames, int(round(seconds * rec.rate_hz)))
+    seq = corrupt(rec, "L2", 1)
+    frames = [(p, None) for p in seq.points_m[:n] if p is not None]
+    frames_ep, publish_ep = f"tcp://127.0.0.1:{_free_port()}", f"tcp://127.0.0.1:{_free_port()}"
+    proc = subprocess.Popen([sys.executable, "-c", _ECHO_DAEMON, frames_ep, publish_ep], cwd=REPO, env=_python_env())
+    ctx = zmq.Context()
+    try:
+        time.sleep(1.0)  # bound and listening
+        target = type("EchoDaemon", (), {"ctx": ctx, "frames_ep": frames_ep, "publish_ep": publish_ep})()
+        result = replay(target, frames, rec.rate_hz, 0, 1, 0)
+    finally:
+        proc.kill()
+        proc.wait()
+        ctx.term()
+    return {**result, "file": f"{LATENCY_FILE} L2"}
+
+
 def scale(data_dir: Path, cache_dir: str, seconds: float, counts=SCALE_COUNTS) -> dict:
     """N shifted copies of SCALE_FILE as N subjects at 120 Hz; per N the latency until the last subject's
     labels. Sustained: p99 under one frame period and at most 1 % of frames unanswered. Goes on past the
@@ -538,6 +580,7 @@ def measure(data_dir: Path, quick: bool, cache_dir: str) -> dict:
     out["startup_warm"] = _repeated("start-up (warm cache)", runs, startup, data_dir, cache_dir)
     seconds = 6.0 if quick else LATENCY_S
     out["latency"] = _repeated("online latency", runs, latency, data_dir, cache_dir, seconds)
+    out["latency_floor"] = _repeated("latency floor (echo daemon)", runs, latency_floor, data_dir, seconds)
     out["latency_every_frame"] = skipped if quick else _repeated(
         "online latency (solve every frame)", runs, latency, data_dir, cache_dir, seconds, 0)
     out["scale"] = _guarded("scale", scale, data_dir, cache_dir, 3.0 if quick else 8.0,
@@ -614,6 +657,11 @@ def report_lines(inproc: dict, speed: dict) -> list[str]:
                          f"unanswered; the daemon's own processing p50 / p99 / max {_f(proc.get('p50'), '{:.2f}')} / "
                          f"{_f(proc.get('p99'), '{:.2f}')} / {_f(proc.get('max'), '{:.1f}')} ms")
         lines.append(f"| {title} | {res} | {_f(d.get('peak_rss_mb'), '{:.0f}')} |")
+    d = speed.get("latency_floor", {})
+    res = err(d) or (f"{d['p50_ms']:.2f} / {d['p99_ms']:.2f} / {d['max_ms']:.1f} ms (p99 {runs(d, 'p99_ms', '{:.2f}')}) "
+                     f"over {d['frames']} frames of {d['file']}: a stand-in daemon that answers each frame with a "
+                     "41-marker labels message at once, no labeling (the client, sockets and protocol alone)")
+    lines.append(f"| latency floor p50 / p99 / max (echo daemon) | {res} | |")
     d = speed.get("scale", {})
     scale_rows: list[str] = []  # the scans' own tables go below the summary table
     if "error" in d:
