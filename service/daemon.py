@@ -12,6 +12,11 @@ one means the daemon has fallen behind: it processes only the newest and counts 
 ("catching up", flagged in status). Skipping is what keeps the latency bounded: working through a long
 backlog would make every later frame late too.
 
+Order of publication per frame: every subject's `labels/<subject>` as soon as `Engine.step` returns,
+then `Engine.complete` (waits for the skeleton fits launched on this frame's labels, which XLA computed
+meanwhile on its own thread) and every `pose/<subject>`. Latency-critical consumers of labels never wait
+for a solve.
+
 Start-up: sockets are bound first (a port conflict fails at once), then the engine is created with JAX's
 persistent compilation cache enabled and warmed up; only then does the loop run. A client may connect at
 any time, but requests are answered only after warm-up, so *any* reply to ``ping`` means ready. Frames
