@@ -429,3 +429,26 @@ def test_labels_a_seeded_synthetic_subject_and_resumes_after_restart(tmp_path):
         # and the subject is labeled as before.
         correct, total, poses = _lockstep(d, recording, range(300, recording.n_frames), seed_frames=305, rng=rng)
         assert correct / total > 0.97 and poses[0].frame == 300
+
+
+def test_labels_of_every_subject_go_out_before_the_poses(tmp_path):
+    """Per frame: all labels/<subject> first (the latency-critical answer), then Engine.complete, then the
+    pose/<subject> messages it completed."""
+    class Completing(FakeEngine):
+        def complete(self, outputs):
+            self.completed = [o.subject for o in outputs]
+            return outputs
+
+    engine = Completing()
+    with running(Daemon(free_config(tmp_path), engine=engine)) as r:
+        r.send(frame(1, labels=["A:x", "B:y", "", ""]))
+        r.next_message(pm.Skeleton)
+        r.send(frame(2))
+        topics = []
+        while len(topics) < 4:
+            parts = r.results.recv_multipart()
+            msg = pm.decode(parts)
+            if isinstance(msg, (pm.Labels, pm.Pose)) and msg.frame == 2:
+                topics.append(parts[0].decode())
+    assert topics == ["labels/A", "labels/B", "pose/A", "pose/B"]
+    assert engine.completed == ["A", "B"]
