@@ -22,6 +22,7 @@ import scipy.linalg
 import scipy.sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
 
 from protocol.skeleton import PARENTS, SEGMENTS
 
@@ -213,7 +214,7 @@ def _by_rigidity(marker_segment: np.ndarray, cost: np.ndarray, history_m: np.nda
     """Reassign each marker among its plausible segments (bone cost within `margin` heights of the best,
     arm segments always plausible) to the one whose other markers keep the steadiest distances to it,
     when the history moved enough to tell (the best choice is clearly steadier than the geometric one)."""
-    d = np.linalg.norm(history_m[:, :, None] - history_m[:, None, :], axis=3)  # (F, M, M)
+    d = np.stack([cdist(frame, frame) for frame in history_m])  # (F, M, M); 20x faster than broadcasting
     n = np.isfinite(d).sum(0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # pairs never seen together: all-NaN

@@ -78,7 +78,7 @@ HISTORY_FRAMES = 240  # labeled frames kept per subject for (re)calibration
 REFINE_RMS_M = 0.012  # a skeleton fitting its markers worse than this [m] RMS is re-aligned ...
 REFINE_EVERY_FRAMES = 240  # ... at most once per this many frames (then twice as long, ...)
 REFINE_APPLY_FRAMES = 120  # a refinement started at frame f takes effect at frame f + this
-CALIBRATE_APPLY_FRAMES = 30  # a calibration (~50 ms of work) started at frame f takes effect at f + this
+CALIBRATE_APPLY_FRAMES = 60  # a calibration (50-300 ms of work beside the frame loop) started at frame f takes effect at f + this
 DISCOVER_FRAMES = 60  # frames an unexplained point must ride on an automatic subject to become a marker
 
 
@@ -281,9 +281,9 @@ class Engine:
 
     def _maybe_calibrate(self, s: _Subject, frame) -> None:
         """Fit a skeleton once an upright pose is in the labeled history; retry every second if not. The
-        work (~50 ms) runs on the worker thread, like refinement, and takes effect CALIBRATE_APPLY_FRAMES
-        frames after it started (waiting for it then if need be): the frame loop never stalls on it, and
-        `label` and the daemon give the same labels."""
+        work (50-300 ms, more with many markers) runs on the worker thread, like refinement, and takes
+        effect CALIBRATE_APPLY_FRAMES frames after it started (waiting for it then if need be): the frame
+        loop does not stall on it, and `label` and the daemon give the same labels."""
         if s.calibration_job is not None:
             future, apply_at = s.calibration_job
             if s.state.frames < apply_at:

@@ -146,7 +146,9 @@ def test_two_seeded_subjects_share_no_point():
 
 
 # ------------------------------------------------------------------ bad input
-def tracked_engine(seed: int = 10, frames: int = 300):
+TRACKED = 400  # frames tracked_engine runs: past the seed (240) and the calibration taking effect (+120)
+
+def tracked_engine(seed: int = 10, frames: int = TRACKED):
     """An engine that has tracked a performer for `frames` frames (2 s seeded), and the sequence."""
     seq = corrupt(perform(seed, duration_s=4.0).recording, "L0", seed)
     engine = Engine()
@@ -174,7 +176,7 @@ class _Offset:
 
 def test_nan_and_inf_points_are_dropped_counted_and_indices_kept():
     engine, seq = tracked_engine()
-    f = 300
+    f = TRACKED
     points = seq.points_m[f].copy()
     bad = np.array([0, 7, 13])
     points[bad[0]] = np.nan
@@ -191,7 +193,7 @@ def test_nan_and_inf_points_are_dropped_counted_and_indices_kept():
 
 def test_duplicate_points_get_one_label_each_marker():
     engine, seq = tracked_engine()
-    f = 300
+    f = TRACKED
     points = np.concatenate([seq.points_m[f], seq.points_m[f]])
     outputs, st = engine.step(FrameInput("default", f, t_ns(f, 120.0), points))
     given = label_points(outputs, len(points))  # fails on a point labeled twice
@@ -200,7 +202,7 @@ def test_duplicate_points_get_one_label_each_marker():
 
 def test_labels_of_the_wrong_length_are_ignored():
     engine, seq = tracked_engine()
-    f = 300
+    f = TRACKED
     outputs, st = engine.step(FrameInput("default", f, t_ns(f, 120.0), seq.points_m[f], ["Other:X"] * 3))
     assert engine.subjects() == ["Performer"]
     assert label_points(outputs, len(seq.points_m[f])) == seq.true_labels(f)
@@ -209,7 +211,7 @@ def test_labels_of_the_wrong_length_are_ignored():
 def test_many_random_points_do_not_raise():
     engine, seq = tracked_engine()
     points = np.random.default_rng(11).uniform(-5, 5, (5000, 3))
-    outputs, st = engine.step(FrameInput("default", 300, t_ns(300, 120.0), points))
+    outputs, st = engine.step(FrameInput("default", TRACKED, t_ns(TRACKED, 120.0), points))
     assert st.n_points == 5000 and st.n_invalid == 0
     assert [o.subject for o in outputs] == ["Performer"]
 
@@ -217,14 +219,14 @@ def test_many_random_points_do_not_raise():
 @pytest.mark.parametrize("points", [np.zeros((0, 3)), np.full((5, 3), np.nan)], ids=["empty", "all-nan"])
 def test_empty_frame_does_not_raise(points):
     engine, seq = tracked_engine()
-    outputs, st = engine.step(FrameInput("default", 300, t_ns(300, 120.0), points))
+    outputs, st = engine.step(FrameInput("default", TRACKED, t_ns(TRACKED, 120.0), points))
     assert st.n_labeled == 0 and st.n_invalid == int(np.isnan(points).any(1).sum())
 
 
 def test_tracking_resumes_after_a_frame_of_foreign_points():
     engine, seq = tracked_engine()
-    engine.step(FrameInput("default", 300, t_ns(300, 120.0), np.random.default_rng(12).uniform(-5, 5, (50, 3))))
-    s = continue_score(engine, seq, 301)
+    engine.step(FrameInput("default", TRACKED, t_ns(TRACKED, 120.0), np.random.default_rng(12).uniform(-5, 5, (50, 3))))
+    s = continue_score(engine, seq, TRACKED + 1)
     assert s.accuracy >= 0.99
 
 
@@ -251,7 +253,7 @@ def test_loaded_subject_resumes_tracking(tmp_path):
     engine.save(tmp_path)
     other = Engine()
     other.load(tmp_path)
-    s = continue_score(other, seq, 300)
+    s = continue_score(other, seq, TRACKED)
     assert s.accuracy >= 0.95
 
 
@@ -294,7 +296,7 @@ def test_labels_do_not_wait_for_the_fit_and_the_pose_is_its_frames():
     """`step` returns the labels while the frame's fit still computes; `complete` gives the pose fitted on
     that frame. Whether or not `complete` is called (the daemon does, `label` need not), the labels are
     the same, frame for frame."""
-    seq = corrupt(perform(2, marker_set="cmu41", duration_s=4.0).recording, "L1", 2)
+    seq = corrupt(perform(2, marker_set="cmu41", duration_s=6.0).recording, "L1", 2)
     runs = []
     for with_pose in (True, False):
         engine = Engine(EngineConfig(tpose_auto=False))
