@@ -78,6 +78,7 @@ HISTORY_FRAMES = 240  # labeled frames kept per subject for (re)calibration
 REFINE_RMS_M = 0.012  # a skeleton fitting its markers worse than this [m] RMS is re-aligned ...
 REFINE_EVERY_FRAMES = 240  # ... at most once per this many frames (then twice as long, ...)
 REFINE_APPLY_FRAMES = 120  # a refinement started at frame f takes effect at frame f + this
+CALIBRATE_CATCH_UP_SOLVES = 5  # solves that bring a calibration's pose up to the frame it takes effect
 CALIBRATE_APPLY_FRAMES = 60  # a calibration (50-300 ms of work beside the frame loop) started at frame f takes effect at f + this
 DISCOVER_FRAMES = 60  # frames an unexplained point must ride on an automatic subject to become a marker
 
@@ -295,9 +296,13 @@ class Engine:
             seg, off, joints, t_root, R = result
             s.model = dataclasses.replace(s.model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints, has_skeleton=True)
             s.state.t_root_m, s.state.R_parent_segment = t_root, R
-            # bring the calibration pose up to now with one solve on the latest labels
+            # bring the calibration pose (of a frame CALIBRATE_APPLY_FRAMES back) up to now on the latest
+            # labels: several solves, as one of max_steps iterations can stop short of a limb that moved
             last = s.history[-1]
-            tracker._fit(s.model, s.state, self.solver, last, np.isfinite(last[:, 0]))
+            for _ in range(CALIBRATE_CATCH_UP_SOLVES):
+                fit = tracker._fit(s.model, s.state, self.solver, last, np.isfinite(last[:, 0]))
+                if fit is None or fit.residual_rms_m < 0.01:
+                    break
             return
         if s.model.has_skeleton or s.state.frames < s.next_calibration_frame or len(s.history) < 12:
             return
