@@ -148,20 +148,6 @@ class PoseSolver:
         out[: len(a)] = a
         return out
 
-    def fit(
-        self,
-        t0_m: np.ndarray,
-        R0_parent_segment: np.ndarray,
-        joint_offsets_m: np.ndarray,
-        marker_segment: np.ndarray,
-        marker_offsets_m: np.ndarray,
-        observed_m: np.ndarray,
-        mask: np.ndarray,
-        weight: np.ndarray | None = None,
-    ) -> FitResult:
-        """Fit from the start pose (t0, R0) to `observed_m` (M, 3) where `mask` (M,) is True; blocks."""
-        return self.launch(t0_m, R0_parent_segment, joint_offsets_m, marker_segment, marker_offsets_m, observed_m, mask, weight).result()
-
     def launch(
         self,
         t0_m: np.ndarray,
@@ -173,9 +159,10 @@ class PoseSolver:
         mask: np.ndarray,
         weight: np.ndarray | None = None,
     ) -> PendingFit:
-        """Start the fit of `fit` and return at once (JAX dispatches asynchronously: XLA computes on its own
-        thread, without the GIL, so the caller's numpy work and the solve share the two cores). Every input
-        is copied into fresh arrays here, so the caller may change its own afterwards."""
+        """Start the fit from the start pose (t0, R0) to `observed_m` (M, 3) where `mask` (M,) is True, and
+        return at once: JAX dispatches asynchronously, XLA computes on its own thread without the GIL, so
+        the caller's numpy work and the solve share the two cores. Every input is copied into fresh arrays
+        here, so the caller may change its own afterwards."""
         m = len(marker_segment)
         joints, segments, offsets = self._model_constants(joint_offsets_m, marker_segment, marker_offsets_m)
         outputs = _solve(
@@ -192,6 +179,10 @@ class PoseSolver:
             max_steps=self.max_steps,
         )
         return PendingFit(outputs, m)
+
+    def fit(self, *args, **kwargs) -> FitResult:
+        """`launch(...)` with the same arguments, waiting for its result (calibration, refinement, tests)."""
+        return self.launch(*args, **kwargs).result()
 
     def _model_constants(self, joint_offsets_m, marker_segment, marker_offsets_m):
         """A subject model's arrays, padded and on the device once per model rather than once per solve
