@@ -344,9 +344,9 @@ class Daemon:
             self._publish(pm.encode(label_message(out)))
         try:
             outputs = self.engine.complete(outputs)
-        except Exception as e:  # noqa: BLE001 - as for step
+        except Exception as e:  # noqa: BLE001 - as for step; the labels are out, only the poses are lost
             self._count_error("engine_error", e)
-            return
+            outputs = []
         for out in outputs:
             if getattr(out, "has_pose", True):
                 self._publish(pm.encode(pose_message(out)))
