@@ -596,6 +596,12 @@ def _f(x, fmt="{:.1f}") -> str:
     return "–" if x is None or (isinstance(x, float) and x != x) else fmt.format(x)
 
 
+def _scan_cells(r: dict) -> str:
+    """p50 | p99 | max | unanswered cells of one row of a scale scan."""
+    return (f"{_f(r['p50_ms'], '{:.2f}')} | {_f(r['p99_ms'], '{:.2f}')} | {_f(r['max_ms'], '{:.1f}')} | "
+            f"{r['unanswered']} / {r['frames']}")
+
+
 def report_lines(inproc: dict, speed: dict) -> list[str]:
     lines = [
         "In-process (the accuracy runs above, 2 worker processes with single-threaded XLA; step time only):",
@@ -673,8 +679,7 @@ def report_lines(inproc: dict, speed: dict) -> list[str]:
                        "apart, one daemon reset between counts):", "",
                        "| subjects | p50 [ms] | p99 [ms] | max [ms] | unanswered |", "|---|---|---|---|---|"]
         for r in d["rows"]:
-            scale_rows.append(f"| {r['subjects']} | {_f(r['p50_ms'], '{:.2f}')} | {_f(r['p99_ms'], '{:.2f}')} | "
-                              f"{_f(r['max_ms'], '{:.1f}')} | {r['unanswered']} / {r['frames']} |")
+            scale_rows.append(f"| {r['subjects']} | {_scan_cells(r)} |")
     d = speed.get("marker_scale", {})
     if "error" in d:
         lines.append(f"| markers per subject | {err(d)} | |")
@@ -687,9 +692,7 @@ def report_lines(inproc: dict, speed: dict) -> list[str]:
                        "| markers | p50 [ms] | p99 [ms] | max [ms] | unanswered | labeled per frame (mean) |",
                        "|---|---|---|---|---|---|"]
         for r in d["rows"]:
-            scale_rows.append(f"| {r['markers']} | {_f(r['p50_ms'], '{:.2f}')} | {_f(r['p99_ms'], '{:.2f}')} | "
-                              f"{_f(r['max_ms'], '{:.1f}')} | {r['unanswered']} / {r['frames']} | "
-                              f"{_f(r.get('labeled_mean'), '{:.1f}')} |")
+            scale_rows.append(f"| {r['markers']} | {_scan_cells(r)} | {_f(r.get('labeled_mean'), '{:.1f}')} |")
     lines += scale_rows
     lines += ["", "Latency is measured by the benchmark client: from just before a frame is sent to the receipt "
               "of its (last subject's) labels message, over loopback TCP, seed frames excluded. "
