@@ -237,7 +237,7 @@ class Engine:
             self._maybe_refine(s)
             s.state, res = tracker.step(s.model, s.state, points, free, frame.t_ns, self.config, self.solver)
             free[res.point_index[res.point_index >= 0]] = False
-            s.history.append(tracker._gather(points, res.point_index))
+            s.history.append(res.positions_m)
             outputs.append(self._output(s, frame, res, keep))
         if labels is None:
             for name in order:
@@ -521,11 +521,10 @@ class Engine:
         s.history = hist
 
     def _output(self, s: _Subject, frame, res: tracker.StepResult, keep) -> SubjectOutput:
-        pts = np.asarray(frame.points_m, np.float64).reshape(-1, 3)
         idx = np.full(len(res.point_index), -1, np.int32)
         ok = res.point_index >= 0
         idx[ok] = keep[res.point_index[ok]]  # back to the frame's own indexing (non-finite points dropped)
-        positions = tracker._gather(pts, idx).astype(np.float32)
+        positions = res.positions_m.astype(np.float32)
         return SubjectOutput(
             subject=s.model.name,
             stream=s.stream,

@@ -104,6 +104,7 @@ class StepResult:
     iterations: int
     residual_m: float
     source: np.ndarray | None = None  # (M,) int8 per marker: 0 none, 1 tracked (NNT), 2 re-acquired, 3 given
+    positions_m: np.ndarray | None = None  # (M, 3) position of the point each marker is labeled with, NaN = none
 
 
 def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m: np.ndarray | None = None) -> TrackState:
@@ -183,33 +184,15 @@ def _snapshot(st: TrackState, pos: np.ndarray, labeled: np.ndarray) -> None:
     st.snap_m[idx] = np.where(labeled[:, None], pos, np.nan)[None]
 
 
-def _kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray, wt: np.ndarray):
-    """Batched weighted Kabsch: the rotations R (B, 3, 3) and centroids cs, cd (B, 3) with
-    dst ~ R (src - cs) + cd, fitted over points where w (B, K) is True with weights wt; also the weighted
-    RMS misfit (B,). Hand-written and batched: one (B, 3, 3) SVD is ~20x faster than a loop of small ones."""
-    wf = np.where(w, wt, 0.0)[..., None]
-    wsum = wf.sum(1)
-    src, dst = np.where(w[..., None], src, 0.0), np.where(w[..., None], dst, 0.0)
-    cs = (src * wf).sum(1) / wsum
-    cd = (dst * wf).sum(1) / wsum
-    a, b = (src - cs[:, None]) * w[..., None], (dst - cd[:, None]) * wf
-    U, _, Vt = np.linalg.svd(np.einsum("rki,rkj->rij", a, b))
-    d = np.sign(np.linalg.det(np.einsum("rji,rkj->rik", Vt, U)))
-    D = np.ones((len(src), 3))
-    D[:, 2] = np.where(d == 0, 1.0, d)
-    R = np.einsum("rji,rj,rkj->rik", Vt, D, U)  # V diag(D) U^T
-    fitted = np.einsum("rij,rkj->rki", R, a) + cd[:, None]
-    res = np.where(w, np.sum((fitted - dst) ** 2, axis=2), 0.0) * wf[..., 0]
-    return R, cs, cd, np.sqrt(res.sum(1) / wsum[:, 0])
-
-
 def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, which: np.ndarray):
     """Predict markers `which` from their rigid partners labeled now (`pos`, NaN elsewhere).
 
     For each marker, the partners' positions when it was last seen are carried onto their positions now by
-    the best rigid transform (Kabsch, batched over markers with a partner mask), and so is the marker.
-    Returns (pred (M, 3), spread (M,) = RMS misfit of the partners [m]); NaN where fewer than 3 usable
-    partners. Hand-written and batched: one (M, 3, 3) SVD is ~20x faster than a loop of small ones.
+    the best rigid transform (weighted Kabsch, batched over markers with a partner mask), and so is the
+    marker. Partners are weighted by how rigidly they keep their distance to it (sigma + 3 mm of skin).
+    Returns (pred (M, 3), spread (M,) = weighted RMS misfit of the partners [m]); NaN where fewer than 3
+    usable partners. Hand-written and batched: one (R, 3, 3) SVD is ~20x faster than a loop of small ones,
+    and batched matmuls cost a fraction of the equivalent einsums on these tiny arrays.
     """
     m = len(pos)
     pred = np.full((m, 3), np.nan)
@@ -219,22 +202,33 @@ def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, whic
         return pred, spread
     part = st.partners[rows]  # (R, K)
     pk = np.maximum(part, 0)
-    src = st.snap_m[rows[:, None], pk]  # (R, K, 3) partner positions when marker was last seen
+    src = st.snap_m[rows[:, None], pk]  # (R, K, 3) partner positions when the marker was last seen
     self_src = st.snap_m[rows, rows]  # (R, 3)
-    dst = pos[pk]  # (R, K, 3)
-    w = (part >= 0) & labeled[pk] & np.isfinite(src[..., 0]) & np.isfinite(self_src[:, :1])
-    n = w.sum(1)
-    ok = n >= 3
+    w = (part >= 0) & labeled[pk] & ~np.isnan(src[..., 0]) & ~np.isnan(self_src[:, :1])
+    ok = np.count_nonzero(w, axis=1) >= 3
     if not ok.any():
         return pred, spread
     if not ok.all():
-        rows, pk, src, dst, w, self_src = rows[ok], pk[ok], src[ok], dst[ok], w[ok], self_src[ok]
-    part = pk
-    # partners weighted by how rigidly they keep their distance to the marker (sigma + 3 mm of skin)
-    sigma = np.sqrt(st.dist_var_m2[rows[:, None], part])
-    R, cs, cd, sp = _kabsch(src, dst, w, w / (sigma + 0.003) ** 2)
-    spread[rows] = sp
-    pred[rows] = np.einsum("rij,rj->ri", R, self_src - cs) + cd
+        rows, pk, src, w, self_src = rows[ok], pk[ok], src[ok], w[ok], self_src[ok]
+    wt = np.where(w, 1.0 / (np.sqrt(st.dist_var_m2.ravel()[rows[:, None] * m + pk]) + 0.003) ** 2, 0.0)  # (R, K)
+    wsum = wt.sum(1)
+    src = np.where(w[..., None], src, 0.0)
+    dst = np.where(w[..., None], pos[pk], 0.0)
+    wn = (wt / wsum[:, None])[:, None, :]  # (R, 1, K)
+    cs, cd = (wn @ src)[:, 0], (wn @ dst)[:, 0]  # weighted centroids
+    a, b = src - cs[:, None], dst - cd[:, None]
+    H = (a * wt[..., None]).transpose(0, 2, 1) @ b  # sum_k wt_k a_k b_k^T
+    U, _, Vt = np.linalg.svd(H)
+    V, Ut = Vt.transpose(0, 2, 1), U.transpose(0, 2, 1)
+    R = V @ Ut
+    flip = np.linalg.det(R) < 0  # a reflection: flip the least significant axis
+    if flip.any():
+        V[flip, :, 2] *= -1
+        R[flip] = V[flip] @ Ut[flip]
+    # sum_k wt_k |R a_k - b_k|^2 = sum_k wt_k (|a_k|^2 + |b_k|^2) - 2 tr(R H)
+    sq = (wt * ((a * a).sum(2) + (b * b).sum(2))).sum(1)
+    spread[rows] = np.sqrt(np.maximum(sq - 2.0 * np.einsum("rij,rji->r", R, H), 0.0) / wsum)
+    pred[rows] = (R @ (self_src - cs)[..., None])[..., 0] + cd
     return pred, spread
 
 
@@ -249,12 +243,12 @@ def distance_misfit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, rows: 
     idx = np.arange(m) if rows is None else np.asarray(rows)
     if len(idx) == 0:
         return out
-    r = idx[:, None]
     part = st.partners[idx]
     pk = np.maximum(part, 0)
-    valid = (part >= 0) & labeled[pk] & labeled[idx][:, None] & (st.dist_n[r, pk] >= 10)
-    sigma = np.sqrt(st.dist_var_m2[r, pk]) + 0.003
-    z = np.where(valid, np.abs(_norm(cur[idx][:, None, :] - cur[pk]) - st.dist_mean_m[r, pk]) / sigma, np.inf)
+    flat = idx[:, None] * m + pk  # (R, K) into the raveled (M, M) statistics: cheaper than 2-D fancy indexing
+    valid = (part >= 0) & labeled[pk] & labeled[idx][:, None] & (st.dist_n.ravel()[flat] >= 10)
+    sigma = np.sqrt(st.dist_var_m2.ravel()[flat]) + 0.003
+    z = np.where(valid, np.abs(_norm(cur[idx][:, None, :] - cur[pk]) - st.dist_mean_m.ravel()[flat]) / sigma, np.inf)
     # keep the 3 most rigid valid partners of each marker (fancy indexing: take_along_axis costs 3x)
     rr = np.arange(len(idx))
     order = np.argsort(np.where(valid, sigma, np.inf), axis=1)[:, :3]
@@ -355,20 +349,22 @@ def _assign(pred: np.ndarray, gates: np.ndarray, points: np.ndarray, cand: np.nd
         return empty, empty, np.empty(0, bool)
     d2 = cdist(pred[rows], points[cols], "sqeuclidean")
     g2 = gates[rows, None] ** 2
-    # Quick reject of rows/cols with nothing in range keeps the Hungarian problem small.
     ok = d2 < g2
-    r_any, c_any = ok.any(1), ok.any(0)
-    if not r_any.any():
-        return empty, empty, np.empty(0, bool)
-    rows, cols, d2, g2, ok = rows[r_any], cols[c_any], d2[r_any][:, c_any], g2[r_any], ok[r_any][:, c_any]
     n_row, n_col = ok.sum(1), ok.sum(0)
-    if np.all(n_row == 1) and np.all(n_col == 1):  # no choice to make: skip the Hungarian solve
-        r, c = np.arange(len(rows)), np.argmax(ok, axis=1)
-    else:
-        cost = np.where(ok, d2 / g2, _BIG)
-        r, c = linear_sum_assignment(cost)
-        keep = cost[r, c] < _BIG
-        r, c = r[keep], c[keep]
+    r_any = n_row > 0
+    n_pairs = int(n_row.sum())
+    if n_pairs == 0:
+        return empty, empty, np.empty(0, bool)
+    if n_pairs == int(r_any.sum()) == int(np.count_nonzero(n_col)):  # no choice to make: no Hungarian solve
+        r = np.flatnonzero(r_any)
+        return rows[r], cols[np.argmax(ok[r], axis=1)], np.zeros(len(r), bool)
+    # Quick reject of rows/cols with nothing in range keeps the Hungarian problem small.
+    c_any = n_col > 0
+    rows, cols, n_row, n_col = rows[r_any], cols[c_any], n_row[r_any], n_col[c_any]
+    cost = np.where(ok, d2 / g2, _BIG)[r_any][:, c_any]
+    r, c = linear_sum_assignment(cost)
+    keep = cost[r, c] < _BIG
+    r, c = r[keep], c[keep]
     contested = (n_row[r] > 1) | (n_col[c] > 1)
     return rows[r], cols[c], contested
 
@@ -386,7 +382,7 @@ def step(
     claimed. Mutates and returns `st` (the registry owns it; callers never share a state)."""
     collect(model, st)
     m = model.n_markers
-    dt = float(np.clip((t_ns - st.last_t_ns) * 1e-9, 1e-4, 0.5)) if st.frames or st.last_t_ns else 1.0 / 120
+    dt = min(max((t_ns - st.last_t_ns) * 1e-9, 1e-4), 0.5) if st.frames or st.last_t_ns else 1.0 / 120
     point_index = np.full(m, -1)
     taken = ~free.copy()
 
@@ -409,7 +405,9 @@ def step(
     # 2. Predict every marker from its rigid partners; a tracked label its partners disagree with (a swap
     #    of two close markers, a ghost caught while the marker hid) is withdrawn and re-assigned below.
     # (the full checks are spread over frames by marker index, so no frame carries them all: a flat p99)
-    check = st.ever_seen & (~labeled | suspicious | (np.arange(m) % CHECK_EVERY_FRAMES == st.frames % CHECK_EVERY_FRAMES))
+    check = ~labeled | suspicious
+    check[st.frames % CHECK_EVERY_FRAMES :: CHECK_EVERY_FRAMES] = True
+    check &= st.ever_seen
     rpred, spread = rigid_predictions(st, cur, labeled, check)
     has_rigid = np.isfinite(rpred[:, 0])
     spread0 = np.where(has_rigid, spread, 0.0)
@@ -517,6 +515,7 @@ def step(
         solved=solved,
         iterations=st.fit_iterations,
         residual_m=st.fit_rms_m,
+        positions_m=cur,
     )
 
 
@@ -526,7 +525,7 @@ def observe(
     """Take given labels as truth (a capture system's own labels, an operator's corrections): `cur` (M, 3)
     holds the labeled positions, NaN where a marker has no label. Keeps every statistic `step` keeps."""
     collect(model, st)
-    dt = float(np.clip((t_ns - st.last_t_ns) * 1e-9, 1e-4, 0.5))
+    dt = min(max((t_ns - st.last_t_ns) * 1e-9, 1e-4), 0.5)
     labeled = np.isfinite(cur[:, 0])
     missing = ~labeled & st.ever_seen
     rpred, _ = rigid_predictions(st, cur, labeled, missing)
@@ -540,7 +539,7 @@ def observe(
     else:
         st.skipped += 1
     source = np.where(labeled, 3, 0).astype(np.int8)
-    return st, StepResult(np.full(model.n_markers, -1, np.int32), st.pos_m.copy(), solved, st.fit_iterations, st.fit_rms_m, source)
+    return st, StepResult(np.full(model.n_markers, -1, np.int32), st.pos_m.copy(), solved, st.fit_iterations, st.fit_rms_m, source, cur)
 
 
 def _commit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, fallback: np.ndarray, t_ns: int, dt: float) -> None:

@@ -43,7 +43,7 @@ def test_rigid_predictions_follow_a_known_rigid_motion():
     now = np.where(labeled[:, None], moved, np.nan)
     pred, spread = tracker.rigid_predictions(st, now, labeled, ~labeled)
     np.testing.assert_allclose(pred[3], moved[3], atol=1e-9)
-    assert spread[3] < 1e-9
+    assert spread[3] < 1e-6  # closed-form misfit: exact up to ~1e-8 m of rounding
     assert np.all(np.isnan(pred[labeled]))  # only the markers asked for
 
 
