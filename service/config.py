@@ -34,10 +34,13 @@ class EngineConfig:
     """A label whose point is farther than this [m] from the fitted model is withdrawn."""
     prior_weight: float = 0.05
     """Weight of the prior pulling the pose toward its prediction, relative to one marker residual [m/rad]."""
-    solver_max_steps: int = 3
-    """Gauss-Newton iterations per solve."""
-    solver_rtol: float = 1e-4
-    """Relative tolerance of the Gauss-Newton solve."""
+    solver_max_steps: int = 10
+    """Most Gauss-Newton iterations per solve (it stops sooner once converged: 4-6 typically). The solve
+    starts from the last fitted pose, up to max_skip_frames old: a fast limb needs more than 3 steps."""
+    solver_rtol: float = 3e-3
+    """Relative tolerance of the Gauss-Newton solve (on the pose and on the residual)."""
+    solver_atol: float = 3e-4
+    """Absolute tolerance of the Gauss-Newton solve [m, rad]: far below skin motion and marker noise."""
     tpose_auto: bool = True
     """Detect people standing in a T-pose in unlabeled points and create subjects from them."""
     tpose_window_frames: int = 60

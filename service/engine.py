@@ -112,7 +112,9 @@ class Engine:
 
     def __init__(self, config: EngineConfig = EngineConfig()):
         self.config = config
-        self.solver = PoseSolver(config.max_markers, config.solver_max_steps, config.solver_rtol, config.prior_weight)
+        self.solver = PoseSolver(
+            config.max_markers, config.solver_max_steps, config.solver_rtol, config.prior_weight, config.solver_atol
+        )
         self._subjects: dict[str, _Subject] = {}
         self._candidates: dict[str, _TposeCandidate] = {}
         self._auto_count = 0

@@ -79,14 +79,14 @@ def _model_markers_jvp(primals, tangents):
 
 
 @functools.partial(jax.jit, static_argnames=("max_steps",))
-def _solve(t0, base_R, joint_offsets, marker_segment, marker_offsets, observed, mask, weight, prior_w, rtol, max_steps):
+def _solve(t0, base_R, joint_offsets, marker_segment, marker_offsets, observed, mask, weight, prior_w, rtol, atol, max_steps):
     def fn(x, _):
         pred = _model_markers(x, base_R, joint_offsets, marker_segment, marker_offsets)
         r = jnp.where(mask[:, None], (pred - jnp.where(mask[:, None], observed, 0.0)) * weight[:, None], 0.0)
         prior = prior_w * (x - jnp.concatenate([t0, jnp.zeros(3 * N_SEGMENTS)]))
         return jnp.concatenate([r.reshape(-1), prior])
 
-    solver = optx.GaussNewton(rtol=rtol, atol=1e-7, linear_solver=lx.Normal(lx.Cholesky()))
+    solver = optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
     x0 = jnp.concatenate([t0, jnp.zeros(3 * N_SEGMENTS)])
     sol = optx.least_squares(fn, solver, x0, max_steps=max_steps, throw=False)
     x = sol.value
@@ -133,10 +133,13 @@ class PendingFit:
 class PoseSolver:
     """Fits the skeleton of one subject model; holds only the compiled shapes and the settings."""
 
-    def __init__(self, max_markers: int, max_steps: int = 8, rtol: float = 1e-4, prior_weight: float = 0.05):
+    def __init__(
+        self, max_markers: int, max_steps: int = 8, rtol: float = 1e-4, prior_weight: float = 0.05, atol: float = 1e-7
+    ):
         self.max_markers = max_markers
         self.max_steps = max_steps
         self.rtol = rtol
+        self.atol = atol
         # Per-parameter prior weights: translation [1/m scale] weaker than rotations [rad].
         self.prior_w = np.concatenate([np.full(3, 0.2 * prior_weight), np.full(3 * N_SEGMENTS, prior_weight)])
         self._prior_w = jax.device_put(self.prior_w)
@@ -176,6 +179,7 @@ class PoseSolver:
             self._ones if weight is None else self.pad(np.asarray(weight, DTYPE)),
             self._prior_w,
             self.rtol,
+            self.atol,
             max_steps=self.max_steps,
         )
         return PendingFit(outputs, m)
