@@ -40,6 +40,7 @@ CHECK_EVERY_FRAMES = 4  # every tracked label is checked against its rigid partn
 REPAIR_EVERY_FRAMES = 4  # the long-run distance repair runs on every 4th frame (a swap lives 3 frames more)
 Z_SUSPECT = 4.0  # a label whose distances to its most rigid partners stray more sigmas than this is suspect
 MAX_SPEED_M_S = 15.0  # markers never move faster; caps velocities estimated from bad predictions
+MAX_ACC_M_S2 = 300.0  # ... nor accelerate faster (a tennis serve's hand reaches ~200 m/s^2)
 SKELETON_VELOCITY_GAP_S = 0.05  # two fits at most this far apart give the skeleton markers' velocity
 _BIG = 1e9
 
@@ -94,6 +95,8 @@ class TrackState:
     skel_pred_m: np.ndarray | None = None  # (M, 3) marker positions of the latest completed fit ...
     skel_vel_m_s: np.ndarray | None = None  # (M, 3) ... their velocity (from the fit before it) ...
     skel_t_ns: int = 0  # ... and the time of the frame it fitted
+    acc_m_s2: np.ndarray | None = None  # (M, 3) from two measured velocities (labeled 3 frames running), else 0
+    vel_measured: np.ndarray | None = None  # (M,) bool: vel_m_s comes from two observations
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,6 +130,8 @@ def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m
         t_root_m=np.zeros(3),
         R_parent_segment=np.tile(np.eye(3), (14, 1, 1)),
         last_labeled_t_ns=t_ns,
+        acc_m_s2=np.zeros((m, 3)),
+        vel_measured=np.zeros(m, bool),
     )
     if history_m is not None:
         for frame in history_m:
@@ -387,7 +392,7 @@ def step(
     taken = ~free.copy()
 
     # 1. NNT: constant-velocity prediction of markers labeled last frame.
-    pred_track = st.pos_m + st.vel_m_s * dt
+    pred_track = st.pos_m + st.vel_m_s * dt + 0.5 * dt * dt * st.acc_m_s2
     speed = _norm(st.vel_m_s)
     gates = np.where(st.labeled, config.nnt_gate_m + 0.35 * speed * dt, 0.0)
     rows, cols, contested = _assign(pred_track, gates, points, ~taken)
@@ -554,7 +559,13 @@ def _commit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, fallback: np.n
     speed = _norm(new_vel)[:, None]
     new_vel *= np.minimum(1.0, MAX_SPEED_M_S / np.maximum(speed, 1e-9))
     # light smoothing against noise, not so much that fast markers lag
+    prev_vel = st.vel_m_s
     st.vel_m_s = np.where(both[:, None], 0.7 * new_vel + 0.3 * st.vel_m_s, new_vel)
+    # acceleration from two measured velocities: at 50 Hz a serving arm's hand turns 4 cm off its
+    # constant-velocity path in one frame, onto its neighbour
+    acc = np.where((both & st.vel_measured)[:, None], (st.vel_m_s - prev_vel) / dt, 0.0)
+    st.acc_m_s2 = acc * np.minimum(1.0, MAX_ACC_M_S2 / np.maximum(_norm(acc), 1e-9))[:, None]
+    st.vel_measured = both
     st.pos_m = np.where(labeled[:, None], cur, fallback)
     st.labeled = labeled
     st.ever_seen |= labeled
