@@ -23,6 +23,9 @@ class EngineConfig:
     """*shape* Markers per subject the solve is compiled for (padded with masks)."""
     max_skip_frames: int = 10
     """Frames in a row the skeleton solve may be skipped while NNT labels everything (0 = solve always)."""
+    max_skip_s: float = 0.1
+    """... and at most this long [s]: the paper's 10 frames at 100 Hz, 5 at 50 Hz (a stale pose is a poor
+    start for the solve and a poor predictor on a fast limb)."""
     nnt_gate_m: float = 0.03
     """Gate [m] between a tracked marker's constant-velocity prediction and a point."""
     reacquire_gate_m: float = 0.045

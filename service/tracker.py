@@ -11,8 +11,8 @@
    gate, so ghosts far from any prediction stay unlabeled; labels the skeleton disagrees with by more than
    `reject_residual_m` are withdrawn: a wrong label costs more than a missing one.
 4. The skeleton fit (optimistix Gauss-Newton, `service.solver`) is launched on the frame's final labels when
-   a hidden marker is left that rigid partners cannot place, and at least every `max_skip_frames` frames;
-   otherwise it is skipped. It computes asynchronously (XLA's thread) while the labels are published and
+   a hidden marker is left that rigid partners cannot place, and at least every `max_skip_frames` frames
+   (and `max_skip_s` seconds); otherwise it is skipped. It computes asynchronously (XLA's thread) while the labels are published and
    is collected at the next frame (`collect`), whose skeleton predictions are its markers carried forward
    at their velocity. The labels never wait for a solve; the pose waits only for its own.
 
@@ -507,7 +507,7 @@ def step(
     if model.has_skeleton and solver is not None:
         missing = ~labeled & st.ever_seen
         loose = (spread0 > LOOSE_SPREAD_M) & (st.fit_rms_m < SKELETON_TRUSTED_RMS_M)
-        if (missing & (~has_rigid | loose)).any() or st.skipped >= config.max_skip_frames:
+        if (missing & (~has_rigid | loose)).any() or st.skipped >= min(config.max_skip_frames, config.max_skip_s / dt - 1e-6):
             solved = _launch(model, st, solver, cur, labeled, t_ns)
             st.skipped = 0
         else:
