@@ -34,6 +34,8 @@ N_PARTNERS = 8
 LOOSE_SPREAD_M = 0.015  # partners misfitting more than this hand the prediction to a well-fitting skeleton
 SKELETON_TRUSTED_RMS_M = 0.015  # a skeleton fit with a lower RMS residual may predict markers
 MAX_GATE_FACTOR = 1.5  # re-acquisition gate at most this times reacquire_gate_m
+HIDDEN_WIDEN_S = 0.5  # a skeleton-predicted marker's gate grows by reacquire_gate_m per this long hidden ...
+MAX_HIDDEN_GATE_FACTOR = 2.0  # ... up to this many times reacquire_gate_m
 PROBATION_FRAMES = 60  # frames a re-acquired label is re-checked against the partners' long-run distances
 CHECK_RESIDUAL_M = 0.006  # a tracked label this far [m] (+10 % of the step) from its prediction is checked
 CHECK_EVERY_FRAMES = 4  # every tracked label is checked against its rigid partners this often anyway
@@ -97,6 +99,7 @@ class TrackState:
     skel_t_ns: int = 0  # ... and the time of the frame it fitted
     acc_m_s2: np.ndarray | None = None  # (M, 3) from two measured velocities (labeled 3 frames running), else 0
     vel_measured: np.ndarray | None = None  # (M,) bool: vel_m_s comes from two observations
+    hidden_frames: np.ndarray | None = None  # (M,) int: frames since the marker was last labeled
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,6 +135,7 @@ def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m
         last_labeled_t_ns=t_ns,
         acc_m_s2=np.zeros((m, 3)),
         vel_measured=np.zeros(m, bool),
+        hidden_frames=np.zeros(m, int),
     )
     if history_m is not None:
         for frame in history_m:
@@ -460,7 +464,11 @@ def step(
         loose = has_rigid & (spread0 > LOOSE_SPREAD_M) & (residual < SKELETON_TRUSTED_RMS_M)
         use_skel = missing & (~has_rigid | loose)
         pred_missing[use_skel] = skel_pred[use_skel]
-        gate_missing[use_skel] = config.reacquire_gate_m
+        # a marker long hidden with its neighbours left its segment unobserved: the fit has kept that
+        # segment where it was, so the gate widens with the time hidden (the distance check below and
+        # probation keep ghosts out)
+        widen = 1.0 + np.minimum(st.hidden_frames * dt / HIDDEN_WIDEN_S, MAX_HIDDEN_GATE_FACTOR - 1.0)
+        gate_missing[use_skel] = config.reacquire_gate_m * widen[use_skel]
     if labeled.sum() < 4:
         # Lost (full occlusion, a restart from saved state, a subject that left): look for every marker
         # where it was last, coasting, so the subject is picked up again when it shows up there.
@@ -566,6 +574,7 @@ def _commit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, fallback: np.n
     acc = np.where((both & st.vel_measured)[:, None], (st.vel_m_s - prev_vel) / dt, 0.0)
     st.acc_m_s2 = acc * np.minimum(1.0, MAX_ACC_M_S2 / np.maximum(_norm(acc), 1e-9))[:, None]
     st.vel_measured = both
+    st.hidden_frames = np.where(labeled, 0, st.hidden_frames + 1)
     st.pos_m = np.where(labeled[:, None], cur, fallback)
     st.labeled = labeled
     st.ever_seen |= labeled
