@@ -116,3 +116,21 @@ def test_predict_equals_the_fitted_model(solver):
     perf, t, R, observed = known_pose(8)
     np.testing.assert_allclose(
         solver.predict(t, R, perf.joint_offsets_m, perf.marker_segment, perf.marker_offsets_m), observed, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_engine_settings_catch_up_with_a_pose_ten_frames_old(seed):
+    """The solve starts from the last fitted pose, up to max_skip_frames old: a fast limb is 0.3 rad away
+    by then. The engine's settings (up to solver_max_steps iterations, stopping once converged) reach the
+    markers; 3 iterations, the old setting, stop tens of millimetres short."""
+    from service.config import EngineConfig
+
+    c = EngineConfig()
+    perf, t, R, observed = known_pose(seed)
+    t0, R0 = perturbed(t, R, seed, angle_rad=0.3, shift_m=0.1)
+    mask = np.ones(len(observed), bool)
+    engine = fit(PoseSolver(MAX_MARKERS, c.solver_max_steps, c.solver_rtol, c.prior_weight, c.solver_atol),
+                 perf, t0, R0, observed, mask)
+    three = fit(PoseSolver(MAX_MARKERS, 3, c.solver_rtol, c.prior_weight, c.solver_atol), perf, t0, R0, observed, mask)
+    assert engine.ok and engine.residual_rms_m < 0.005  # the weak prior toward the start holds it a few mm off
+    assert three.residual_rms_m > 0.015

@@ -1,6 +1,7 @@
 """service/tracker.py, the pure per-subject step: rigid-partner prediction against a known rigid motion,
 and labels that survive shuffling, a 0.5 s occlusion and ghosts beside the markers (no skeleton, no solver:
-what the tracker does on its own before a subject is calibrated)."""
+what the tracker does on its own before a subject is calibrated); the NNT prediction of an accelerating
+marker; the skip budget of the solve (a counting stand-in for the solver)."""
 
 from __future__ import annotations
 
@@ -120,3 +121,64 @@ def test_a_reacquired_marker_keeps_its_measured_velocity():
     tracker._commit(st, cur, np.ones(m, bool), cur, t_ns(1), 1.0 / RATE_HZ)
     np.testing.assert_allclose(st.vel_m_s[0], [1.0, 0.0, 0.0])  # not (0 - 0.1) * 120 = -12 m/s
     np.testing.assert_allclose(st.vel_m_s[1:, 0], 1.0)
+
+
+def test_nnt_follows_an_accelerating_marker():
+    """A marker swinging on a tight circle at 50 Hz (3.6 m/s, 108 m/s^2: a serving hand) curves 4 cm off a
+    straight line each frame. Predicted with its measured acceleration it is tracked every frame; the
+    control, a constant-velocity prediction (acceleration capped at 0), loses it."""
+    rate, r, w = 50.0, 0.12, 30.0
+    t = np.arange(100) / rate
+    P = np.stack([r * np.cos(w * t), r * np.sin(w * t), np.ones_like(t)], axis=1)[:, None]
+    model = tracker.SubjectModel("P", ("M0",), np.zeros(1, int), np.zeros((1, 3)), np.zeros((14, 3)))
+
+    def lost_frames(max_acc: float) -> int:
+        old, tracker.MAX_ACC_M_S2 = tracker.MAX_ACC_M_S2, max_acc
+        try:
+            ns = [int(round(f * 1e9 / rate)) for f in range(len(P))]
+            st = tracker.new_state(model, P[0], ns[0], P[:1])
+            for f in range(1, 5):
+                st, _ = tracker.observe(model, st, P[f], ns[f], CONFIG)
+            lost = 0
+            for f in range(5, len(P)):
+                st, res = tracker.step(model, st, P[f], np.ones(1, bool), ns[f], CONFIG)
+                lost += int(res.point_index[0] < 0)
+            return lost
+        finally:
+            tracker.MAX_ACC_M_S2 = old
+
+    assert lost_frames(tracker.MAX_ACC_M_S2) == 0
+    assert lost_frames(0.0) > 50
+
+
+class _CountingSolver:
+    """Stands in for PoseSolver: counts launches; every fit fails, so the tracker keeps its pose."""
+
+    def __init__(self):
+        self.launches = 0
+
+    def launch(self, *args):
+        self.launches += 1
+        nan = np.full(3, np.nan)
+        from service.solver import FitResult
+
+        result = FitResult(nan, np.tile(np.eye(3), (14, 1, 1)), np.zeros((0, 3)), float("nan"), 0, False)
+        return type("Pending", (), {"result": lambda self: result})()
+
+
+def test_the_solve_is_skipped_at_most_max_skip_frames_and_max_skip_s():
+    """Nothing hidden, so only the skip budget launches solves: every 11th frame at 120 Hz (10 skipped),
+    every 6th at 50 Hz (0.1 s = 5 frames skipped)."""
+    perf = perform(1, duration_s=3.0)
+    for rate, every in ((120.0, 11), (50.0, 6)):
+        P = perf.recording.points_m[:: int(round(120 / rate))]
+        m = P.shape[1]
+        model = tracker.SubjectModel("P", tuple(f"M{i}" for i in range(m)), np.zeros(m, int), np.zeros((m, 3)),
+                                     np.zeros((14, 3)), has_skeleton=True)
+        ns = [int(round(f * 1e9 / rate)) for f in range(len(P))]
+        st = tracker.new_state(model, P[0], ns[0], P[:1])
+        solver = _CountingSolver()
+        n = 66
+        for f in range(1, n + 1):
+            st, res = tracker.step(model, st, P[f], np.ones(m, bool), ns[f], CONFIG, solver)
+        assert solver.launches == n // every, rate
