@@ -27,7 +27,7 @@ class EngineConfig:
     """... and at most this long [s]: the paper's 10 frames at 100 Hz, 5 at 50 Hz (a stale pose is a poor
     start for the solve and a poor predictor on a fast limb)."""
     nnt_gate_m: float = 0.03
-    """Gate [m] between a tracked marker's constant-velocity prediction and a point."""
+    """Gate [m] between a tracked marker's predicted position (velocity, acceleration) and a point."""
     reacquire_gate_m: float = 0.045
     """Gate [m] between a skeleton-predicted (occluded) marker and a point for the Hungarian assignment."""
     rigid_check_m: float = 0.025

@@ -1,7 +1,8 @@
 """Per-subject labeling, the paper's loop made robust: `step(model, state, points, free, t_ns)`.
 
-1. Tracking (NNT): markers labeled in the previous frame are predicted at constant velocity and matched
-   one-to-one to points with the Hungarian method inside a gate that widens with speed x frame time.
+1. Tracking (NNT): markers labeled in the previous frame are predicted from their measured velocity (and
+   acceleration, once labeled three frames running) and matched one-to-one to points with the Hungarian
+   method inside a gate that widens with speed x frame time.
 2. Checks: a label its rigid partners disagree with (a swap of two close markers, a ghost caught while the
    marker hid) is withdrawn or swapped back; long-run partner distances repair what rigid checks miss.
 3. Re-acquisition: every occluded marker is predicted, from its *rigid partners* when three of them are
@@ -12,9 +13,10 @@
    `reject_residual_m` are withdrawn: a wrong label costs more than a missing one.
 4. The skeleton fit (optimistix Gauss-Newton, `service.solver`) is launched on the frame's final labels when
    a hidden marker is left that rigid partners cannot place, and at least every `max_skip_frames` frames
-   (and `max_skip_s` seconds); otherwise it is skipped. It computes asynchronously (XLA's thread) while the labels are published and
-   is collected at the next frame (`collect`), whose skeleton predictions are its markers carried forward
-   at their velocity. The labels never wait for a solve; the pose waits only for its own.
+   (and `max_skip_s` seconds); otherwise it is skipped. It computes asynchronously (XLA's thread) while
+   the labels are published and is collected at the next frame (`collect`), whose skeleton predictions
+   are its markers carried forward at their velocity. The labels never wait for a solve; the pose waits
+   only for its own. Markers hidden long are re-acquired inside a gate that widens with the time hidden.
 
 Rigid partners are learned online: running statistics of every pairwise marker distance (only over
 labeled frames) rank, for each marker, the partners whose distance varies least.
@@ -395,7 +397,7 @@ def step(
     point_index = np.full(m, -1)
     taken = ~free.copy()
 
-    # 1. NNT: constant-velocity prediction of markers labeled last frame.
+    # 1. NNT: markers labeled last frame, predicted from their velocity and acceleration.
     pred_track = st.pos_m + st.vel_m_s * dt + 0.5 * dt * dt * st.acc_m_s2
     speed = _norm(st.vel_m_s)
     gates = np.where(st.labeled, config.nnt_gate_m + 0.35 * speed * dt, 0.0)
