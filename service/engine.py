@@ -117,6 +117,7 @@ class Engine:
         )
         self._subjects: dict[str, _Subject] = {}
         self._candidates: dict[str, _TposeCandidate] = {}
+        self._clocks: dict[str, tuple] = {}  # stream -> (frame, stamp [ns], tracking time [ns], recent periods)
         self._auto_count = 0
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
 
@@ -206,6 +207,31 @@ class Engine:
     # ---------------------------------------------------------------- the frame loop
     def step(self, frame: FrameInput) -> tuple[list[SubjectOutput], FrameStats]:
         """Label one frame. Non-finite points are dropped and counted; labels of the wrong length ignored."""
+        stamp_ns = frame.t_ns
+        frame = dataclasses.replace(frame, t_ns=self._clock(frame))
+        outputs, stats = self._step(frame)
+        if frame.t_ns != stamp_ns:
+            outputs = [dataclasses.replace(o, t_ns=stamp_ns) for o in outputs]
+        return outputs, stats
+
+    def _clock(self, frame: FrameInput) -> int:
+        """The time the tracker runs on: the frame's stamp when it agrees with the stream's frame period (a
+        capture system's clock), else the last time plus the frames elapsed times the median period. A
+        stamp taken at send time jitters, and a burst after a stall puts frames microseconds apart: their
+        motion over that dt would read as enormous speed and accelerations."""
+        last = self._clocks.get(frame.stream)
+        if last is None or frame.frame <= last[0]:
+            self._clocks[frame.stream] = (frame.frame, frame.t_ns, frame.t_ns, collections.deque(maxlen=31))
+            return frame.t_ns
+        last_frame, last_stamp, last_t, periods = last
+        df = frame.frame - last_frame
+        periods.append((frame.t_ns - last_stamp) / df)
+        period = float(np.median(periods))
+        t = frame.t_ns if abs(frame.t_ns - (last_t + df * period)) <= 0.25 * period else int(last_t + df * period)
+        self._clocks[frame.stream] = (frame.frame, frame.t_ns, t, periods)
+        return t
+
+    def _step(self, frame: FrameInput) -> tuple[list[SubjectOutput], FrameStats]:
         pts = np.asarray(frame.points_m, dtype=np.float64).reshape(-1, 3)
         finite = np.all(np.isfinite(pts), axis=1)
         n_invalid = int((~finite).sum())

@@ -101,6 +101,7 @@ class TrackState:
     skel_t_ns: int = 0  # ... and the time of the frame it fitted
     acc_m_s2: np.ndarray | None = None  # (M, 3) from two measured velocities (labeled 3 frames running), else 0
     vel_measured: np.ndarray | None = None  # (M,) bool: vel_m_s comes from two observations
+    acc_dt_s: float = 0.0  # the frame interval acc_m_s2 was measured over
     hidden_frames: np.ndarray | None = None  # (M,) int: frames since the marker was last labeled
 
 
@@ -398,7 +399,9 @@ def step(
     taken = ~free.copy()
 
     # 1. NNT: markers labeled last frame, predicted from their velocity and acceleration.
-    pred_track = st.pos_m + st.vel_m_s * dt + 0.5 * dt * dt * st.acc_m_s2
+    pred_track = st.pos_m + st.vel_m_s * dt
+    if dt < 1.5 * st.acc_dt_s:  # the acceleration holds for a frame step, not across dropped frames
+        pred_track += 0.5 * dt * dt * st.acc_m_s2
     speed = _norm(st.vel_m_s)
     gates = np.where(st.labeled, config.nnt_gate_m + 0.35 * speed * dt, 0.0)
     rows, cols, contested = _assign(pred_track, gates, points, ~taken)
@@ -576,6 +579,7 @@ def _commit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, fallback: np.n
     acc = np.where((both & st.vel_measured)[:, None], (st.vel_m_s - prev_vel) / dt, 0.0)
     st.acc_m_s2 = acc * np.minimum(1.0, MAX_ACC_M_S2 / np.maximum(_norm(acc), 1e-9))[:, None]
     st.vel_measured = both
+    st.acc_dt_s = dt
     st.hidden_frames = np.where(labeled, 0, st.hidden_frames + 1)
     st.pos_m = np.where(labeled[:, None], cur, fallback)
     st.labeled = labeled
