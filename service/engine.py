@@ -100,6 +100,29 @@ class _Subject:
 
 
 @dataclasses.dataclass
+class _StreamClock:
+    """The time the tracker runs on for one stream: the frame's stamp when it agrees with the stream's frame
+    period (a capture system's clock), else the last time plus the frames elapsed times the median period.
+    A stamp taken at send time jitters, and a burst after a stall puts frames microseconds apart: their
+    motion over that dt would read as enormous speeds and accelerations."""
+
+    frame: int
+    stamp_ns: int
+    t_ns: int
+    periods_ns: collections.deque = dataclasses.field(default_factory=lambda: collections.deque(maxlen=31))
+
+    def tick(self, frame: int, stamp_ns: int) -> int:
+        if frame > self.frame:
+            df = frame - self.frame
+            self.periods_ns.append((stamp_ns - self.stamp_ns) / df)
+            period = float(np.median(self.periods_ns))
+            expected = self.t_ns + df * period
+            self.t_ns = stamp_ns if abs(stamp_ns - expected) <= 0.25 * period else int(expected)
+            self.frame, self.stamp_ns = frame, stamp_ns
+        return self.t_ns
+
+
+@dataclasses.dataclass
 class _TposeCandidate:
     """Points seen in a T-pose, tracked still for a window before they become a subject."""
 
@@ -117,7 +140,7 @@ class Engine:
         )
         self._subjects: dict[str, _Subject] = {}
         self._candidates: dict[str, _TposeCandidate] = {}
-        self._clocks: dict[str, tuple] = {}  # stream -> (frame, stamp [ns], tracking time [ns], recent periods)
+        self._clocks: dict[str, _StreamClock] = {}
         self._auto_count = 0
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
 
@@ -208,28 +231,14 @@ class Engine:
     def step(self, frame: FrameInput) -> tuple[list[SubjectOutput], FrameStats]:
         """Label one frame. Non-finite points are dropped and counted; labels of the wrong length ignored."""
         stamp_ns = frame.t_ns
-        frame = dataclasses.replace(frame, t_ns=self._clock(frame))
+        clock = self._clocks.get(frame.stream)
+        if clock is None or frame.frame <= clock.frame:  # a new stream, or one that restarted
+            clock = self._clocks[frame.stream] = _StreamClock(frame.frame, frame.t_ns, frame.t_ns)
+        frame = dataclasses.replace(frame, t_ns=clock.tick(frame.frame, frame.t_ns))
         outputs, stats = self._step(frame)
         if frame.t_ns != stamp_ns:
             outputs = [dataclasses.replace(o, t_ns=stamp_ns) for o in outputs]
         return outputs, stats
-
-    def _clock(self, frame: FrameInput) -> int:
-        """The time the tracker runs on: the frame's stamp when it agrees with the stream's frame period (a
-        capture system's clock), else the last time plus the frames elapsed times the median period. A
-        stamp taken at send time jitters, and a burst after a stall puts frames microseconds apart: their
-        motion over that dt would read as enormous speed and accelerations."""
-        last = self._clocks.get(frame.stream)
-        if last is None or frame.frame <= last[0]:
-            self._clocks[frame.stream] = (frame.frame, frame.t_ns, frame.t_ns, collections.deque(maxlen=31))
-            return frame.t_ns
-        last_frame, last_stamp, last_t, periods = last
-        df = frame.frame - last_frame
-        periods.append((frame.t_ns - last_stamp) / df)
-        period = float(np.median(periods))
-        t = frame.t_ns if abs(frame.t_ns - (last_t + df * period)) <= 0.25 * period else int(last_t + df * period)
-        self._clocks[frame.stream] = (frame.frame, frame.t_ns, t, periods)
-        return t
 
     def _step(self, frame: FrameInput) -> tuple[list[SubjectOutput], FrameStats]:
         pts = np.asarray(frame.points_m, dtype=np.float64).reshape(-1, 3)
