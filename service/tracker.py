@@ -4,7 +4,9 @@
    acceleration, once labeled three frames running) and matched one-to-one to points with the Hungarian
    method inside a gate that widens with speed x frame time.
 2. Checks: a label its rigid partners disagree with (a swap of two close markers, a ghost caught while the
-   marker hid) is withdrawn or swapped back; long-run partner distances repair what rigid checks miss.
+   marker hid) is withdrawn or swapped back; long-run partner distances repair what rigid checks miss;
+   two labels that each sit where a recent skeleton fit puts the other are swapped back (a mirror-image
+   pair, such as toe and fifth metatarsal, keeps every distance to its partners when crossed).
 3. Re-acquisition: every occluded marker is predicted, from its *rigid partners* when three of them are
    labeled now (Kabsch on the partners' positions when the marker was last seen, i.e. a rigid-body fill;
    the most accurate prediction there is and free of calibration error), else from the fitted skeleton,
@@ -453,6 +455,11 @@ def step(
     #    computed while they were published), carried forward at its markers' velocity, if it is recent.
     skel_pred = _skeleton_now(st, t_ns, dt) if model.has_skeleton else None
     residual = st.fit_rms_m
+    if skel_pred is not None and residual < 0.5 * config.reject_residual_m:
+        # two labels that crossed where no partners could tell (a mirror-symmetric pair, such as the two
+        # wrist markers, keeps every distance): each sits where the skeleton puts the other
+        err_s = np.where(labeled, _norm(np.where(labeled[:, None], cur - skel_pred, 0.0)), 0.0)
+        _unswap(point_index, cur, skel_pred, err_s, config.rigid_check_m)
 
     # 4. Re-acquire occluded markers (Hungarian on predictions, gated).
     coast = st.pos_m + st.vel_m_s * dt * 0.5
