@@ -333,21 +333,30 @@ def _gather(points: np.ndarray, point_index: np.ndarray) -> np.ndarray:
     return out
 
 
-def _unswap(point_index: np.ndarray, cur: np.ndarray, rpred: np.ndarray, err: np.ndarray, tol_m: float) -> None:
-    """Swap the labels of two markers when each sits where the other's rigid partners expect it (markers
-    that passed close to each other and were tracked through crossed). In place."""
-    suspects = np.flatnonzero(err > tol_m)
-    if len(suspects) < 2:
+def _unswap(point_index: np.ndarray, cur: np.ndarray, pred: np.ndarray, err: np.ndarray, tol_m: float) -> None:
+    """Swap the labels of two markers when each sits where the other is predicted (markers that passed
+    close to each other and were tracked through crossed): crossed distances under half the straight
+    ones. In place."""
+    sus = np.flatnonzero((err > tol_m) & (point_index >= 0))
+    if len(sus) < 2:
         return
-    for a_i, i in enumerate(suspects):
-        for k in suspects[a_i + 1 :]:
-            if point_index[i] < 0 or point_index[k] < 0:
-                continue
-            crossed = np.linalg.norm(cur[k] - rpred[i]) + np.linalg.norm(cur[i] - rpred[k])
-            if crossed < 0.5 * (err[i] + err[k]):
-                point_index[i], point_index[k] = point_index[k], point_index[i]
-                cur[[i, k]] = cur[[k, i]]
-                err[i] = err[k] = 0.0
+    # all pairs at once (a poor fit can make a dozen suspects); the best pairs are taken greedily
+    d = _norm(cur[sus][None, :, :] - pred[sus][:, None, :])  # d[a, b] = |cur[b] - pred[a]|
+    crossed = d + d.T
+    straight = err[sus][:, None] + err[sus][None, :]
+    ok = crossed < 0.5 * straight
+    np.fill_diagonal(ok, False)
+    if not ok.any():
+        return
+    score = np.where(ok, crossed / straight, np.inf)
+    for flat in np.argsort(score, axis=None)[: int(ok.sum())]:
+        a, b = divmod(int(flat), len(sus))
+        i, k = sus[a], sus[b]
+        if not np.isfinite(score[a, b]) or err[i] == 0.0 or err[k] == 0.0:
+            continue
+        point_index[i], point_index[k] = point_index[k], point_index[i]
+        cur[[i, k]] = cur[[k, i]]
+        err[i] = err[k] = 0.0
 
 
 def _assign(pred: np.ndarray, gates: np.ndarray, points: np.ndarray, cand: np.ndarray):
