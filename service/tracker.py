@@ -38,6 +38,11 @@ N_PARTNERS = 8
 LOOSE_SPREAD_M = 0.015  # partners misfitting more than this hand the prediction to a well-fitting skeleton
 SKELETON_TRUSTED_RMS_M = 0.015  # a skeleton fit with a lower RMS residual may predict markers
 MAX_GATE_FACTOR = 1.5  # re-acquisition gate at most this times reacquire_gate_m
+# ... and, once a skeleton is fitted, never more than this, however loose the partners and poor the fit:
+# a gate that grew with the partners' misfit to 20 cm around a hidden wrist marker took its neighbour's
+# point, and kept it (135_02). Without a skeleton the partners are all there is, and the wide gate the
+# only way back for a marker whose limb moved while it hid.
+MAX_RIGID_GATE_FACTOR = 3.0
 HIDDEN_WIDEN_S = 0.5  # a skeleton-predicted marker's gate grows by reacquire_gate_m per this long hidden ...
 MAX_HIDDEN_GATE_FACTOR = 2.0  # ... up to this many times reacquire_gate_m
 PROBATION_FRAMES = 60  # frames a re-acquired label is re-checked against the partners' long-run distances
@@ -474,10 +479,13 @@ def step(
     coast = st.pos_m + st.vel_m_s * dt * 0.5
     pred_missing = np.where(has_rigid[:, None], rpred, np.nan)
     # the gate widens with the partners' misfit; when a well-fitting skeleton can take over from loose
-    # partners (below), not beyond MAX_GATE_FACTOR: loose partners place a marker poorly
+    # partners (below), not beyond MAX_GATE_FACTOR: loose partners place a marker poorly; with a skeleton,
+    # never beyond MAX_RIGID_GATE_FACTOR
     gate_rigid = 0.8 * config.reacquire_gate_m + 3.0 * spread0
     if skel_pred is not None and residual < SKELETON_TRUSTED_RMS_M:
         gate_rigid = np.minimum(gate_rigid, MAX_GATE_FACTOR * config.reacquire_gate_m)
+    if model.has_skeleton:
+        gate_rigid = np.minimum(gate_rigid, MAX_RIGID_GATE_FACTOR * config.reacquire_gate_m)
     gate_missing = np.where(has_rigid, gate_rigid, 0.0)
     if skel_pred is not None:
         # the skeleton speaks for markers with no rigid partners in view, and for those whose partners

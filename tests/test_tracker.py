@@ -5,7 +5,10 @@ marker; the skip budget of the solve (a counting stand-in for the solver)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from recordings.synthetic import perform
@@ -46,6 +49,41 @@ def test_rigid_predictions_follow_a_known_rigid_motion():
     np.testing.assert_allclose(pred[3], moved[3], atol=1e-9)
     assert spread[3] < 1e-6  # closed-form misfit: exact up to ~1e-8 m of rounding
     assert np.all(np.isnan(pred[labeled]))  # only the markers asked for
+
+
+@pytest.mark.parametrize("has_skeleton", [True, False])
+def test_reacquisition_gate_is_capped_however_loose_the_partners(monkeypatch, has_skeleton):
+    """A hidden marker whose partners misfit a lot (a bending limb) gets a wider gate; once the subject has
+    a skeleton, never beyond 3 x reacquire_gate_m (a 20 cm gate around a hidden wrist marker took its
+    neighbour's point); without one, the partners are all there is and the gate stays wide."""
+    rng = np.random.default_rng(1)
+    body = rng.uniform(-0.15, 0.15, (10, 3)) + [0, 0, 1]
+    history = np.stack([body + [0.001 * k, 0, 0] for k in range(40)])
+    model, st = seeded_state(history, 40)
+    model = dataclasses.replace(model, has_skeleton=has_skeleton)  # no solver: no fit, partners only
+    tracker._update_partners(st)
+    gates_seen = []
+    assign = tracker._assign
+
+    def spy(pred, gates, points, cand):
+        gates_seen.append(gates.copy())
+        return assign(pred, gates, points, cand)
+
+    monkeypatch.setattr(tracker, "_assign", spy)
+    drift = rng.normal(0, 0.0015, body.shape)  # per frame: the body bends out of shape, 8 cm in 60 frames
+    for k in range(1, 61):
+        now = history[-1] + k * drift
+        cloud = np.delete(now, 3, axis=0)  # marker 3 hidden throughout
+        st, res = tracker.step(model, st, cloud, np.ones(len(cloud), bool), t_ns(40 + k), CONFIG)
+    assert (res.point_index >= 0).sum() == 9  # the partners were tracked through it
+    labeled = res.point_index >= 0
+    _, spread = tracker.rigid_predictions(st, res.positions_m, labeled, ~labeled)
+    wide = 0.8 * CONFIG.reacquire_gate_m + 3.0 * spread[3]
+    assert wide > 5 * CONFIG.reacquire_gate_m  # the gate the partners' misfit asks for
+    if has_skeleton:
+        assert 2 * CONFIG.reacquire_gate_m < gates_seen[-1][3] <= 3 * CONFIG.reacquire_gate_m + 1e-12
+    else:
+        assert gates_seen[-1][3] > 5 * CONFIG.reacquire_gate_m
 
 
 def run_tracker(points_m: np.ndarray, seed_frames: int, shuffle_seed: int = 0, ghosts_m=None):
