@@ -96,11 +96,15 @@ class JobResult:
 
 def labeled_files(data_dir: Path) -> list[str]:
     """C3D files under data_dir with ground truth (at least MIN_TRUE_MARKERS named markers)."""
-    from recordings.c3d import read_c3d
+    from recordings.c3d import C3DError, read_c3d
 
     files = []
     for path in sorted(data_dir.rglob("*.c3d")):
-        rec = read_c3d(path)
+        try:
+            rec = read_c3d(path)
+        except C3DError as e:  # one unreadable file costs its own rows, not the whole benchmark
+            print(f"benchmarks.run: skipping {path.relative_to(data_dir)}: {e}", file=sys.stderr)
+            continue
         if sum(is_marker_label(label) for label in rec.labels) >= MIN_TRUE_MARKERS:
             files.append(path.relative_to(data_dir).as_posix())
     return files
@@ -439,6 +443,26 @@ def write_report(path: Path, args, meta: dict, files, levels, results, notes, sp
 # ----------------------------------------------------------------------------------------------- main
 
 
+def write_speed_report(path: Path, args, meta: dict, speed: dict, wall_s) -> None:
+    """The speed section alone (`--speed-only`): the same measurements as the full report's."""
+    from benchmarks import speed as speed_mod
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lines = [
+        "# Speed",
+        "",
+        f"Written by `{args.command_line}` on {meta['date']} in {wall_s / 60:.1f} min (no accuracy runs, so no "
+        "in-process step times). Protocol: `../shared/EVALUATION.md`.",
+        "",
+        f"- machine: {meta['cpu']}, {meta['cores']} cores, {meta['ram']} RAM",
+        f"- python {meta['python']}; {meta['versions']}",
+        f"- commit: {meta['commit']}",
+        "",
+        *speed_mod.report_lines({}, speed),
+    ]
+    path.write_text("\n".join(lines) + "\n")
+
+
 def parse_args(argv: list[str] | None):
     parser = argparse.ArgumentParser(prog="python3 -m benchmarks.run", description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true",
@@ -450,8 +474,14 @@ def parse_args(argv: list[str] | None):
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="directory of the recordings (default ../shared/data)")
     parser.add_argument("--workers", type=int, default=2, help="processes for the accuracy runs (default 2)")
     parser.add_argument("--no-speed", action="store_true", help="skip the speed section that needs the CLI and the daemon")
-    parser.add_argument("--output", type=Path, default=REPO / "BENCHMARK.md", help="report to write (default BENCHMARK.md)")
+    parser.add_argument("--speed-only", action="store_true",
+                        help="only the speed section (daemon, CLI, scale; no accuracy runs), written to benchmarks/out/SPEED.md unless --output")
+    parser.add_argument("--output", type=Path, help="report to write (default BENCHMARK.md)")
     args = parser.parse_args(argv)
+    if args.speed_only and args.no_speed:
+        raise UsageError("--speed-only and --no-speed leave nothing to measure; pass one of them")
+    if args.output is None:
+        args.output = OUT_DIR / "SPEED.md" if args.speed_only else REPO / "BENCHMARK.md"
     args.command_line = "python3 -m benchmarks.run" + ("" if not argv else " " + shlex.join(argv))
     if args.max_seconds is None:
         args.max_seconds = QUICK_MAX_S if args.quick else FULL_MAX_S
@@ -489,16 +519,21 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     meta = {"date": datetime.datetime.now().strftime("%Y-%m-%d %H:%M"), **machine()}
     print(f"benchmark: {len(files)} files x {len(levels)} levels, {meta['cpu']}", file=sys.stderr)
-    jobs, notes = plan(args.data, files, levels, args.max_seconds or None)
-    results = run_jobs(args.data, jobs, args.workers, cache_dir)
-    print(f"\nbenchmark: accuracy runs done in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
-    speed_inproc = in_process_speed(results)
-    plots = save_plots(results)
-    speed: dict = {}
+    results, notes, speed_inproc, plots, speed = [], [], {}, [], {}
+    if not args.speed_only:
+        jobs, notes = plan(args.data, files, levels, args.max_seconds or None)
+        results = run_jobs(args.data, jobs, args.workers, cache_dir)
+        print(f"\nbenchmark: accuracy runs done in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+        speed_inproc = in_process_speed(results)
+        plots = save_plots(results)
     if not args.no_speed:
         from benchmarks import speed as speed_mod
 
         speed = speed_mod.measure(args.data, quick=args.quick, cache_dir=cache_dir)
+    if args.speed_only:
+        write_speed_report(args.output, args, meta, speed, time.perf_counter() - t0)
+        print(f"benchmark: wrote {args.output} in {(time.perf_counter() - t0) / 60:.1f} min", file=sys.stderr)
+        return 0
     write_report(args.output, args, meta, files, levels, results, notes, speed_inproc, speed, plots,
                  time.perf_counter() - t0)
     print(f"benchmark: wrote {args.output} in {(time.perf_counter() - t0) / 60:.1f} min", file=sys.stderr)

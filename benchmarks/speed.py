@@ -608,7 +608,7 @@ def report_lines(inproc: dict, speed: dict) -> list[str]:
         "",
         "| variant | frames | frames/s | per-frame cost mean / p99, 41 markers at L2 [ms] | frames with a solve | peak RSS [MiB] |",
         "|---|---|---|---|---|---|",
-    ]
+    ] if inproc else []
     for v, s in inproc.items():
         lines.append(f"| {v} | {s['frames']} | {_f(s['fps'], '{:.0f}')} | {_f(s['l2_mean_ms'], '{:.2f}')} / "
                      f"{_f(s['l2_p99_ms'], '{:.2f}')} | {_f(100 * s['solved_fraction'], '{:.0f} %')} | "
@@ -616,7 +616,8 @@ def report_lines(inproc: dict, speed: dict) -> list[str]:
     if "adaptive" in inproc and "nnt" in inproc:
         lines += ["", f"Engine (adaptive) cost relative to the NNT baseline: "
                   f"{inproc['nnt']['fps'] / inproc['adaptive']['fps']:.1f}x per frame."]
-    lines.append("")
+    if inproc:
+        lines.append("")
     if not speed:
         return lines + ["Daemon and CLI measurements skipped (`--no-speed`)."]
 
