@@ -241,10 +241,12 @@ def _is_arm(k: int) -> bool:
     return SEGMENTS[k].endswith(("upperarm", "forearm"))
 
 
-def fill_reference(history_m: np.ndarray) -> np.ndarray:
+def fill_reference(history_m: np.ndarray, n_near: int = 5) -> np.ndarray:
     """One frame (M, 3) for calibration from labeled history (F, M, 3): the frame with most markers seen,
-    with markers unseen there moved in from the nearest frame that has them (by the shift of the markers
-    the two frames share)."""
+    with markers unseen there moved in from the nearest frame that has them, by the rigid motion (Kabsch)
+    of their n_near nearest markers seen in both frames: a limb that turned between the two frames carries
+    its markers along (the cloud's mean shift put a sternum marker seen 2 s earlier 6-15 cm off, where it
+    was never found again). With fewer than 3 such neighbours, the shift of the markers the frames share."""
     seen = np.isfinite(history_m[..., 0])
     ref_i = int(np.argmax(seen.sum(1)))
     ref = history_m[ref_i].copy()
@@ -253,9 +255,19 @@ def fill_reference(history_m: np.ndarray) -> np.ndarray:
         if len(frames) == 0:
             continue
         f = frames[np.argmin(np.abs(frames - ref_i))]
-        common = seen[f] & seen[ref_i]
-        shift = (history_m[ref_i, common] - history_m[f, common]).mean(0) if common.any() else 0.0
-        ref[j] = history_m[f, j] + shift
+        common = np.flatnonzero(seen[f] & seen[ref_i])
+        src = history_m[f]
+        if len(common) >= 3:
+            near = common[np.argsort(np.linalg.norm(src[common] - src[j], axis=1))[:n_near]]
+            a, b = src[near], history_m[ref_i, near]
+            ca, cb = a.mean(0), b.mean(0)
+            U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
+            d = np.sign(np.linalg.det(U @ Vt))
+            R = (U * [1.0, 1.0, d]) @ Vt  # rotation taking a's neighbourhood onto b's (row vectors: x @ R)
+            ref[j] = (src[j] - ca) @ R + cb
+        else:
+            shift = (history_m[ref_i, common] - src[common]).mean(0) if len(common) else 0.0
+            ref[j] = src[j] + shift
     return ref
 
 

@@ -5,6 +5,7 @@ detection in a cloud holding two people, nothing, or only ghosts."""
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 import pytest
 
 from protocol.skeleton import N_SEGMENTS, SEGMENTS
@@ -108,6 +109,21 @@ def test_fill_reference_moves_unseen_markers_in_from_other_frames():
     # ... and marker 7, hidden there, comes from a neighbouring frame, moved by the cloud's shift
     np.testing.assert_allclose(ref[7], perf.recording.points_m[5, 7], atol=0.005)
     assert np.all(np.isnan(ref[:2]))  # markers never seen stay unseen
+
+
+def test_fill_reference_carries_a_marker_with_its_turning_neighbours():
+    """A marker hidden in the reference frame, seen only before the body turned 45 degrees: it is moved
+    in with the rigid motion of its neighbours (the mean shift alone left it ~20 cm off)."""
+    rng = np.random.default_rng(4)
+    body = rng.uniform(-0.3, 0.3, (12, 3)) + [0.0, 0.0, 1.0]
+    turned = body @ Rotation.from_rotvec([0.0, 0.0, np.pi / 4]).as_matrix().T + [1.0, 2.0, 0.0]
+    hist = np.stack([body, turned])
+    hist[0, [7, 8]] = np.nan  # so the turned frame, missing marker 4, is the reference
+    hist[1, 4] = np.nan
+    ref = fill_reference(hist)
+    np.testing.assert_allclose(ref[4], turned[4], atol=1e-9)
+    shifted = body[4] + (turned[[0, 1, 2, 3, 5, 6, 9, 10, 11]] - body[[0, 1, 2, 3, 5, 6, 9, 10, 11]]).mean(0)
+    assert np.linalg.norm(shifted - turned[4]) > 0.05  # what the old mean shift gave
 
 
 def test_detect_tpose_finds_two_performers_standing_apart():
