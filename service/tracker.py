@@ -12,7 +12,10 @@
    the most accurate prediction there is and free of calibration error), else from the fitted skeleton,
    else by coasting. Remaining points are assigned to these predictions with the Hungarian method inside a
    gate, so ghosts far from any prediction stay unlabeled; labels the skeleton disagrees with by more than
-   `reject_residual_m` are withdrawn: a wrong label costs more than a missing one.
+   `reject_residual_m` are withdrawn: a wrong label costs more than a missing one. On a segment none of
+   whose markers is labeled (its pose is the fit's guess), markers are taken two or more at once, at the
+   model's distances. A subject with fewer than 4 labels (it left the volume, or was hidden whole) is
+   looked for by registering its last marker cloud onto the unclaimed points nearby (rigid ICP).
 4. The skeleton fit (optimistix Gauss-Newton, `service.solver`) is launched on the frame's final labels when
    a hidden marker is left that rigid partners cannot place, and at least every `max_skip_frames` frames
    (and `max_skip_s` seconds); otherwise it is skipped. It computes asynchronously (XLA's thread) while
@@ -30,6 +33,7 @@ import dataclasses
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from service.config import EngineConfig
@@ -45,6 +49,10 @@ MAX_GATE_FACTOR = 1.5  # re-acquisition gate at most this times reacquire_gate_m
 MAX_RIGID_GATE_FACTOR = 3.0
 HIDDEN_WIDEN_S = 0.5  # a skeleton-predicted marker's gate grows by reacquire_gate_m per this long hidden ...
 MAX_HIDDEN_GATE_FACTOR = 2.0  # ... up to this many times reacquire_gate_m
+RELOCATE_RADIUS_M = 2.5  # a lost subject is looked for among the unclaimed points this far (horizontally) ...
+RELOCATE_MIN_SHARE = 0.3  # ... and found when this share of its markers has a point after registration
+RELOCATE_GATE_FACTOR = 0.5  # ... within this times reacquire_gate_m (the rigid parts; limbs moved meanwhile)
+SEGMENT_DISTANCE_TOL_M = 0.015  # markers re-found together on an unobserved segment keep the model's distances
 PROBATION_FRAMES = 60  # frames a re-acquired label is re-checked against the partners' long-run distances
 CHECK_RESIDUAL_M = 0.006  # a tracked label this far [m] (+10 % of the step) from its prediction is checked
 CHECK_EVERY_FRAMES = 4  # every tracked label is checked against its rigid partners this often anyway
@@ -364,6 +372,80 @@ def _unswap(point_index: np.ndarray, cur: np.ndarray, pred: np.ndarray, err: np.
         err[i] = err[k] = 0.0
 
 
+def _unsure_on_unseen_segment(model: SubjectModel, labeled: np.ndarray, rows: np.ndarray, cur: np.ndarray,
+                              use_skel: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """Which re-acquisitions (rows, just assigned at positions cur) to hold back: those the skeleton
+    predicted on a segment none of whose markers is labeled. Such a segment's pose is the fit's guess (a
+    foot hidden while the leg moved), and one point near it could be any of its markers (`seen`: ever
+    seen): its markers are taken only two or more at once, at the distances the model puts between them
+    (within SEGMENT_DISTANCE_TOL_M)."""
+    hold = np.zeros(len(rows), bool)
+    seg = model.marker_segment
+    observed = np.zeros(int(seg.max()) + 1, bool)
+    observed[seg[labeled]] = True
+    guess = use_skel[rows] & ~observed[seg[rows]]
+    for k in np.unique(seg[rows[guess]]):
+        group = np.flatnonzero(guess & (seg[rows] == k))
+        if len(group) < 2:
+            # ambiguous only if the segment carries other markers it could be (a lone shin marker is not)
+            hold[group] = np.count_nonzero(seen[seg == k]) >= 2
+            continue
+        i = rows[group]
+        d_pts = _norm(cur[i][:, None] - cur[i][None])
+        off = model.marker_offsets_m[i]
+        d_model = _norm(off[:, None] - off[None])
+        if np.abs(d_pts - d_model).max() > SEGMENT_DISTANCE_TOL_M:
+            hold[group] = True
+    return hold
+
+
+def _relocate(st: TrackState, points: np.ndarray, cand: np.ndarray, gate_m: float) -> np.ndarray | None:
+    """Where a lost subject's markers are now (M, 3; NaN = unknown), or None: its last known marker cloud
+    registered onto the unclaimed points within RELOCATE_RADIUS_M of it by rigid ICP (from four headings,
+    as it may come back turned), accepted when at least RELOCATE_MIN_SHARE of its markers (and 4) then
+    have a point within `gate_m`. Limbs that moved while it was away fit loosely; the torso and head
+    carry the registration, and the skeleton fit finds the rest. Runs only while a subject is lost."""
+    known = np.flatnonzero(st.ever_seen & np.isfinite(st.pos_m[:, 0]))
+    pts = points[cand]
+    if len(known) < 4 or len(pts) < 4:
+        return None
+    src = st.pos_m[known]
+    center = src.mean(0)
+    for _ in range(3):  # the centre of the unclaimed points around it (mean shift, horizontally)
+        near = pts[_norm(pts[:, :2] - center[:2]) < RELOCATE_RADIUS_M]
+        if len(near) < 4:
+            return None
+        center = near.mean(0)
+    tree = cKDTree(near)
+    need = max(4, int(np.ceil(RELOCATE_MIN_SHARE * len(known))))
+    best, best_n = None, need - 1
+    c_src = src.mean(0)
+    for yaw in np.arange(4) * (np.pi / 2):
+        c, s_ = np.cos(yaw), np.sin(yaw)
+        R = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+        t = center - c_src @ R.T
+        for it in range(12):  # ICP, trimmed: pairs farther than a shrinking radius are left out
+            X = src @ R.T + t
+            d, j = tree.query(X)
+            inl = d < max(0.3 * 0.7**it, gate_m)
+            if inl.sum() < 3:
+                break
+            a, b = src[inl], near[j[inl]]
+            ca, cb = a.mean(0), b.mean(0)
+            U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
+            Rt = (U * [1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt  # rows: x @ Rt
+            R, t = Rt.T, cb - ca @ Rt
+        X = src @ R.T + t
+        n = int((tree.query(X)[0] < gate_m).sum())
+        if n > best_n:
+            best, best_n = X, n
+    if best is None:
+        return None
+    out = np.full(st.pos_m.shape, np.nan)
+    out[known] = best
+    return out
+
+
 def _assign(pred: np.ndarray, gates: np.ndarray, points: np.ndarray, cand: np.ndarray):
     """Hungarian assignment of markers (rows of pred, gated) to candidate points.
 
@@ -487,6 +569,7 @@ def step(
     if model.has_skeleton:
         gate_rigid = np.minimum(gate_rigid, MAX_RIGID_GATE_FACTOR * config.reacquire_gate_m)
     gate_missing = np.where(has_rigid, gate_rigid, 0.0)
+    use_skel = np.zeros(m, bool)
     if skel_pred is not None:
         # the skeleton speaks for markers with no rigid partners in view, and for those whose partners
         # have moved against each other since (spread), when the skeleton itself fits well
@@ -499,11 +582,21 @@ def step(
         widen = 1.0 + np.minimum(st.hidden_frames * dt / HIDDEN_WIDEN_S, MAX_HIDDEN_GATE_FACTOR - 1.0)
         gate_missing[use_skel] = config.reacquire_gate_m * widen[use_skel]
     if labeled.sum() < 4:
-        # Lost (full occlusion, a restart from saved state, a subject that left): look for every marker
-        # where it was last, coasting, so the subject is picked up again when it shows up there.
-        use_coast = missing & ~np.isfinite(pred_missing[:, 0])
-        pred_missing[use_coast] = coast[use_coast]
-        gate_missing[use_coast] = config.reacquire_gate_m
+        # Lost (full occlusion, a restart from saved state, a subject that left the volume): look for the
+        # subject's last known marker cloud in the unclaimed points nearby, registered rigidly (it came
+        # back walking, elsewhere, turned); failing that, for every marker where it was last, coasting.
+        found = _relocate(st, points, ~taken, RELOCATE_GATE_FACTOR * config.reacquire_gate_m)
+        if found is not None:  # only what the registration places well: the fit then finds the limbs
+            # (from their pose before the subject left: their gates start narrow again, not widened by
+            # the time away)
+            st.hidden_frames[:] = 0
+            use = missing & np.isfinite(found[:, 0])
+            pred_missing[use] = found[use]
+            gate_missing[use] = RELOCATE_GATE_FACTOR * config.reacquire_gate_m
+        else:
+            use = missing & ~np.isfinite(pred_missing[:, 0])
+            pred_missing[use] = coast[use]
+            gate_missing[use] = config.reacquire_gate_m
     gate_missing = np.where(missing, gate_missing, 0.0)
     rows, cols, _ = _assign(pred_missing, gate_missing, points, ~taken)
     reacquired = np.zeros(m, bool)
@@ -511,6 +604,8 @@ def step(
         point_index[rows] = cols
         cur = _gather(points, point_index)
         wrong = distance_misfit(st, cur, point_index >= 0, rows)[rows] > Z_SUSPECT
+        if model.has_skeleton:
+            wrong |= _unsure_on_unseen_segment(model, labeled, rows, cur, use_skel, st.ever_seen)
         point_index[rows[wrong]] = -1
         rows, cols = rows[~wrong], cols[~wrong]
         reacquired[rows] = True

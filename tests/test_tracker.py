@@ -86,6 +86,44 @@ def test_reacquisition_gate_is_capped_however_loose_the_partners(monkeypatch, ha
         assert gates_seen[-1][3] > 5 * CONFIG.reacquire_gate_m
 
 
+def test_relocate_finds_a_lost_subject_moved_and_turned():
+    """A lost subject's last marker cloud is registered onto the unclaimed points: found 1 m away and
+    turned 100 degrees, among ghosts; not found where nothing like it is."""
+    rng = np.random.default_rng(5)
+    body = rng.uniform([-0.2, -0.15, 0.0], [0.2, 0.15, 1.7], (30, 3))
+    model, st = seeded_state(np.stack([body] * 5), 5)
+    R = Rotation.from_rotvec([0.0, 0.0, np.radians(100)]).as_matrix()
+    now = (body - body.mean(0)) @ R.T + body.mean(0) + [1.0, 0.3, 0.0]
+    ghosts = rng.uniform(-3, 3, (8, 3)) + [0, 0, 1]
+    points = np.concatenate([now[5:], ghosts])  # five of its markers still hidden
+    found = tracker._relocate(st, points, np.ones(len(points), bool), 0.02)
+    np.testing.assert_allclose(found, now, atol=1e-6)
+    assert tracker._relocate(st, ghosts, np.ones(len(ghosts), bool), 0.02) is None
+
+
+def test_markers_of_an_unobserved_segment_are_taken_together_at_the_model_distances():
+    """On a segment none of whose markers is labeled, one skeleton-predicted re-acquisition alone is held
+    back (it could be any of the segment's markers), two are taken if their points are as far apart as
+    the model says, and held back if not."""
+    seg = np.array([0, 0, 1, 1, 1])
+    off = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0, 0], [0.05, 0, 0], [0, 0.08, 0]], float)
+    model = tracker.SubjectModel("P", tuple("abcde"), seg, off, np.zeros((14, 3)), True)
+    labeled = np.array([True, True, False, False, False])  # segment 1 unobserved
+    use_skel = np.ones(5, bool)
+    cur = np.full((5, 3), np.nan)
+    cur[2], cur[3], cur[4] = [1.0, 0, 0], [1.05, 0, 0], [1.0, 0.2, 0]
+    seen = np.ones(5, bool)
+
+    def hold(rows, labeled=labeled, seen=seen):
+        return tracker._unsure_on_unseen_segment(model, labeled, np.array(rows), cur, use_skel, seen)
+
+    assert hold([3]).all()  # alone
+    assert not hold([2, 3]).any()  # 5 cm apart, as modelled
+    assert hold([2, 4]).all()  # 20 cm apart, 8 cm modelled
+    assert not hold([3], seen=np.array([1, 1, 0, 1, 0], bool)).any()  # the segment's only marker ever seen
+    assert not hold([3], labeled=np.array([1, 1, 1, 0, 0], bool)).any()  # the segment is observed
+
+
 def run_tracker(points_m: np.ndarray, seed_frames: int, shuffle_seed: int = 0, ghosts_m=None):
     """Seed, then step every later frame with the points shuffled; returns per frame the true marker each
     marker slot was given (-1 = none, -2 = a ghost)."""
