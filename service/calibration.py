@@ -23,6 +23,7 @@ import scipy.sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
+from scipy.spatial.transform import Rotation
 
 from protocol.skeleton import PARENTS, SEGMENTS
 
@@ -241,6 +242,16 @@ def _is_arm(k: int) -> bool:
     return SEGMENTS[k].endswith(("upperarm", "forearm"))
 
 
+def rigid_motion(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation R (3, 3) and translation t (3,) that best take points a (N, 3) onto b (N, 3), b ~ R a + t
+    (Kabsch, by scipy's Rotation.align_vectors)."""
+    ca, cb = a.mean(0), b.mean(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # nearly collinear points: still the best fit there is
+        R = Rotation.align_vectors(b - cb, a - ca)[0].as_matrix()
+    return R, cb - R @ ca
+
+
 def fill_reference(history_m: np.ndarray, n_near: int = 5) -> np.ndarray:
     """One frame (M, 3) for calibration from labeled history (F, M, 3): the frame with most markers seen,
     with markers unseen there moved in from the nearest frame that has them, by the rigid motion (Kabsch)
@@ -259,12 +270,8 @@ def fill_reference(history_m: np.ndarray, n_near: int = 5) -> np.ndarray:
         src = history_m[f]
         if len(common) >= 3:
             near = common[np.argsort(np.linalg.norm(src[common] - src[j], axis=1))[:n_near]]
-            a, b = src[near], history_m[ref_i, near]
-            ca, cb = a.mean(0), b.mean(0)
-            U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
-            d = np.sign(np.linalg.det(U @ Vt))
-            R = (U * [1.0, 1.0, d]) @ Vt  # rotation taking a's neighbourhood onto b's (row vectors: x @ R)
-            ref[j] = (src[j] - ca) @ R + cb
+            R, t = rigid_motion(src[near], history_m[ref_i, near])
+            ref[j] = R @ src[j] + t
         else:
             shift = (history_m[ref_i, common] - src[common]).mean(0) if len(common) else 0.0
             ref[j] = src[j] + shift

@@ -36,6 +36,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
+from service.calibration import rigid_motion
 from service.config import EngineConfig
 
 N_PARTNERS = 8
@@ -365,7 +366,7 @@ def _unswap(point_index: np.ndarray, cur: np.ndarray, pred: np.ndarray, err: np.
     for flat in np.argsort(score, axis=None)[: int(ok.sum())]:
         a, b = divmod(int(flat), len(sus))
         i, k = sus[a], sus[b]
-        if not np.isfinite(score[a, b]) or err[i] == 0.0 or err[k] == 0.0:
+        if err[i] == 0.0 or err[k] == 0.0:  # one of them already swapped with a better partner
             continue
         point_index[i], point_index[k] = point_index[k], point_index[i]
         cur[[i, k]] = cur[[k, i]]
@@ -430,11 +431,7 @@ def _relocate(st: TrackState, points: np.ndarray, cand: np.ndarray, gate_m: floa
             inl = d < max(0.3 * 0.7**it, gate_m)
             if inl.sum() < 3:
                 break
-            a, b = src[inl], near[j[inl]]
-            ca, cb = a.mean(0), b.mean(0)
-            U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
-            Rt = (U * [1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt  # rows: x @ Rt
-            R, t = Rt.T, cb - ca @ Rt
+            R, t = rigid_motion(src[inl], near[j[inl]])
         X = src @ R.T + t
         n = int((tree.query(X)[0] < gate_m).sum())
         if n > best_n:
@@ -554,7 +551,7 @@ def step(
     if skel_pred is not None and residual < 0.5 * config.reject_residual_m:
         # two labels that crossed where no partners could tell (a mirror-symmetric pair, such as the two
         # wrist markers, keeps every distance): each sits where the skeleton puts the other
-        err_s = np.where(labeled, _norm(np.where(labeled[:, None], cur - skel_pred, 0.0)), 0.0)
+        err_s = _norm(np.where(labeled[:, None], cur - skel_pred, 0.0))
         _unswap(point_index, cur, skel_pred, err_s, config.rigid_check_m)
 
     # 4. Re-acquire occluded markers (Hungarian on predictions, gated).
