@@ -91,15 +91,32 @@ def test_masked_markers_are_ignored_garbage_or_nan(solver):
 def test_compiles_once_across_masks_and_subjects(solver):
     perf_a, t_a, R_a, obs_a = known_pose(4, "cmu41")
     perf_b, t_b, R_b, obs_b = known_pose(5, "gt53")
-    fit(solver, perf_a, t_a, R_a, obs_a, np.ones(len(obs_a), bool))
+    solver.warm_up()
     count = solver.compile_count()
-    assert count >= 1
+    assert count >= len(solver.sizes)
+    assert solver.size(len(obs_a)) != solver.size(len(obs_b)), "the two subjects should use both padded sizes"
     rng = np.random.default_rng(6)
     for perf, t, R, obs in ((perf_a, t_a, R_a, obs_a), (perf_b, t_b, R_b, obs_b)) * 2:
         mask = rng.random(len(obs)) < 0.7
         fit(solver, perf, t, R, obs, mask)
     fit(solver, perf_b, t_b, R_b, obs_b, np.zeros(len(obs_b), bool))
+    fit(solver, perf_a, t_a, R_a, obs_a, np.ones(len(obs_a), bool))
     assert solver.compile_count() == count, "the solve was traced again: a shape or dtype changed"
+
+
+def test_a_subject_solves_the_same_at_either_padded_size(solver):
+    perf, t, R, observed = known_pose(8)
+    mask = np.random.default_rng(8).random(len(observed)) < 0.8
+    small, large = solver, PoseSolver(2 * MAX_MARKERS)  # 41 markers padded to 48, and to 96
+    assert small.size(len(observed)) < large.size(len(observed))
+    a, b = fit(small, perf, t, R, observed, mask), fit(large, perf, t, R, observed, mask)
+    np.testing.assert_allclose(a.predicted_m, b.predicted_m, atol=1e-9)
+    assert a.iterations == b.iterations
+
+
+def test_more_markers_than_compiled_for_is_a_clear_error(solver):
+    with pytest.raises(ValueError, match="max_markers"):
+        solver.size(MAX_MARKERS + 1)
 
 
 def test_no_visible_marker_keeps_a_finite_pose(solver):
@@ -133,4 +150,4 @@ def test_engine_settings_catch_up_with_a_pose_ten_frames_old(seed):
                  perf, t0, R0, observed, mask)
     three = fit(PoseSolver(MAX_MARKERS, 3, c.solver_rtol, c.prior_weight, c.solver_atol), perf, t0, R0, observed, mask)
     assert engine.ok and engine.residual_rms_m < 0.005  # the weak prior toward the start holds it a few mm off
-    assert three.residual_rms_m > 0.015
+    assert three.residual_rms_m > 0.01, three.residual_rms_m
