@@ -14,8 +14,10 @@
    gate, so ghosts far from any prediction stay unlabeled; labels the skeleton disagrees with by more than
    `reject_residual_m` are withdrawn: a wrong label costs more than a missing one. On a segment none of
    whose markers is labeled (its pose is the fit's guess), markers are taken two or more at once, at the
-   model's distances. A subject with fewer than 4 labels (it left the volume, or was hidden whole) is
-   looked for by registering its last marker cloud onto the unclaimed points nearby (rigid ICP).
+   model's distances. Markers neither can place, unlabeled a few frames though in view (a hand that moved
+   while hidden, where the fit, with nothing to hold it, kept it), are looked for by registering their
+   segment around its joint. A subject with fewer than 4 labels (it left the volume, or was hidden whole)
+   is looked for by registering its last marker cloud onto the unclaimed points nearby (rigid ICP).
 4. The skeleton fit (optimistix Gauss-Newton, `service.solver`) is launched on the frame's final labels when
    a hidden marker is left that rigid partners cannot place, and at least every `max_skip_frames` frames
    (and `max_skip_s` seconds); otherwise it is skipped. It computes asynchronously (XLA's thread) while
@@ -38,6 +40,7 @@ from scipy.spatial.distance import cdist
 
 from service.calibration import rigid_motion
 from service.config import EngineConfig
+from service.kinematics import world_frames_np
 
 N_PARTNERS = 8
 LOOSE_SPREAD_M = 0.015  # partners misfitting more than this hand the prediction to a well-fitting skeleton
@@ -54,6 +57,11 @@ RELOCATE_RADIUS_M = 2.5  # a lost subject is looked for among the unclaimed poin
 RELOCATE_MIN_SHARE = 0.3  # ... and found when this share of its markers has a point after registration
 RELOCATE_GATE_FACTOR = 0.5  # ... within this times reacquire_gate_m (the rigid parts; limbs moved meanwhile)
 SEGMENT_DISTANCE_TOL_M = 0.015  # markers re-found together on an unobserved segment keep the model's distances
+SEARCH_LOST_FRAMES = 3  # a marker unlabeled this many frames on a segment the fit cannot place is searched for
+SEARCH_EVERY_FRAMES = 3  # ... on every 3rd frame, around its segment's joint (`_search_segments`)
+SEARCH_JOINT_TOL_M = 0.03  # a point this close to a marker's distance from its joint may be it ...
+SEARCH_PAIR_TOL_M = 0.012  # ... two points this close to the model distance between two of its markers ...
+SEARCH_INLIER_M = 0.012  # ... and a marker with a point this close to where the registered segment puts it
 PROBATION_FRAMES = 60  # frames a re-acquired label is re-checked against the partners' long-run distances
 CHECK_RESIDUAL_M = 0.006  # a tracked label this far [m] (+10 % of the step) from its prediction is checked
 CHECK_EVERY_FRAMES = 4  # every tracked label is checked against its rigid partners this often anyway
@@ -443,6 +451,77 @@ def _relocate(st: TrackState, points: np.ndarray, cand: np.ndarray, gate_m: floa
     return out
 
 
+def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, cand: np.ndarray,
+                     labeled: np.ndarray, cur: np.ndarray, lost: np.ndarray) -> dict[int, int]:
+    """Which points markers `lost` (labeled on none of the last SEARCH_LOST_FRAMES frames though their segment
+    should be in view) are now, {marker: point}. Their segment is registered onto the unclaimed
+    points around its joint. The fit has no word on a segment none of whose markers is labeled (it keeps
+    it where it was: a wrist flicked while hidden is found tens of centimetres from there), but the joint
+    it hangs from is held by the parent. So: a point may be marker i if its distance from the joint matches
+    |offset_i| (rotation-invariant); two such points, a pair if their distance matches the model's; the
+    segment's rigid motion (Kabsch) from the joint, its labeled markers and the pair places every other
+    marker, and the hypothesis placing most markers on points wins, if no other assignment does as well
+    (two mirror-image markers alone stay unfound)."""
+    found: dict[int, int] = {}
+    _, pw = world_frames_np(st.t_root_m, st.R_parent_segment, model.joint_offsets_m)
+    pool = np.flatnonzero(cand)
+    if len(pool) == 0:
+        return found
+    seg_of = model.marker_segment
+    for k in np.unique(seg_of[lost]):
+        idx = np.flatnonzero((seg_of == k) & st.ever_seen)
+        lab, los = idx[labeled[idx]], idx[lost[idx]]
+        off = model.marker_offsets_m
+        o = pw[k]
+        reach = _norm(points[pool] - o)
+        near = pool[reach < _norm(off[idx]).max() + SEARCH_JOINT_TOL_M]
+        if len(near) == 0:
+            continue
+        r_near = _norm(points[near] - o)
+        options = {i: near[np.abs(r_near - _norm(off[i])) < SEARCH_JOINT_TOL_M] for i in los}
+        base_a = np.vstack([np.zeros((1, 3)), off[lab]])
+        base_b = np.vstack([o[None], cur[lab]])
+        hyps = []
+        if len(lab):  # one point with the joint and a labeled marker already fixes the segment
+            hyps += [((i, p),) for i in los for p in options[i]]
+        for a, i in enumerate(los):
+            for j in los[a + 1 :]:
+                d_model = _norm(off[i] - off[j])
+                for p in options[i]:
+                    for q in options[j]:
+                        if p != q and abs(_norm(points[p] - points[q]) - d_model) < SEARCH_PAIR_TOL_M:
+                            hyps.append(((i, p), (j, q)))
+        scored = []
+        for h in hyps:
+            mk = np.array([i for i, _ in h])
+            pt = np.array([p for _, p in h])
+            A, B = np.vstack([base_a, off[mk]]), np.vstack([base_b, points[pt]])
+            R, t = rigid_motion(A, B)
+            res = _norm(A @ R.T + t - B)
+            if res.max() > 2 * SEARCH_JOINT_TOL_M or res[1:].max() > 2 * SEARCH_INLIER_M:
+                continue
+            X = off[los] @ R.T + t
+            d = _norm(X[:, None] - points[near][None])
+            best = np.argmin(d, axis=1)
+            ok = d[np.arange(len(los)), best] < SEARCH_INLIER_M
+            assignment = {int(los[r]): int(near[best[r]]) for r in np.flatnonzero(ok)}
+            assignment.update({int(i): int(p) for i, p in h})
+            if len(set(assignment.values())) < len(assignment):
+                continue
+            scored.append((len(assignment), float(np.sqrt(np.mean(res**2))), assignment))
+        if not scored:
+            continue
+        scored.sort(key=lambda x: (-x[0], x[1]))
+        n, r, assignment = scored[0]
+        if n < 3:
+            continue
+        if any(n2 == n and a2 != assignment and r2 < 1.5 * r + 0.003 for n2, r2, a2 in scored[1:]):
+            continue  # another assignment fits as well: ambiguous
+        found.update(assignment)
+        pool = pool[~np.isin(pool, list(assignment.values()))]
+    return found
+
+
 def _assign(pred: np.ndarray, gates: np.ndarray, points: np.ndarray, cand: np.ndarray):
     """Hungarian assignment of markers (rows of pred, gated) to candidate points.
 
@@ -597,19 +676,32 @@ def step(
     gate_missing = np.where(missing, gate_missing, 0.0)
     rows, cols, _ = _assign(pred_missing, gate_missing, points, ~taken)
     reacquired = np.zeros(m, bool)
-    if len(rows):
+
+    def accept(rows, cols, hold=None):
+        """Take re-acquisitions (rows -> cols) but those their rigid partners' distances or `hold` refuse."""
         point_index[rows] = cols
         cur = _gather(points, point_index)
         wrong = distance_misfit(st, cur, point_index >= 0, rows)[rows] > Z_SUSPECT
-        if model.has_skeleton:
-            wrong |= _unsure_on_unseen_segment(model, labeled, rows, cur, use_skel, st.ever_seen)
+        if hold is not None:
+            wrong |= hold(rows, cur)
         point_index[rows[wrong]] = -1
         rows, cols = rows[~wrong], cols[~wrong]
         reacquired[rows] = True
         st.provisional[rows] = PROBATION_FRAMES
         taken[cols] = True
-        labeled = point_index >= 0
-        cur = _gather(points, point_index)
+        return point_index >= 0, _gather(points, point_index)
+
+    if len(rows):
+        hold = (lambda r, c: _unsure_on_unseen_segment(model, labeled, r, c, use_skel, st.ever_seen)) if model.has_skeleton else None
+        labeled, cur = accept(rows, cols, hold)
+    # Markers the fit cannot place, unlabeled a few frames though in view: their segment is looked for
+    # around its joint (a hand flicked while hidden is found where the fit never looks).
+    if model.has_skeleton and st.skel_pred_m is not None and st.frames % SEARCH_EVERY_FRAMES == 0:
+        lost = ~labeled & st.ever_seen & (st.hidden_frames >= SEARCH_LOST_FRAMES) & (~has_rigid | (spread0 > LOOSE_SPREAD_M))
+        if lost.any():
+            found = _search_segments(model, st, points, ~taken, labeled, cur, lost)
+            if found:
+                labeled, cur = accept(np.array(list(found)), np.array(list(found.values())))
 
     # 5. Reject labels the model disagrees with.
     if skel_pred is not None and residual < 0.5 * config.reject_residual_m:

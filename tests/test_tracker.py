@@ -124,6 +124,46 @@ def test_markers_of_an_unobserved_segment_are_taken_together_at_the_model_distan
     assert not hold([3], labeled=np.array([1, 1, 1, 0, 0], bool)).any()  # the segment is observed
 
 
+def test_a_segment_the_fit_lost_is_found_around_its_joint():
+    """A forearm turned 80 degrees at the elbow while its markers went unlabeled: the fit (which had no
+    word on it) still holds it where it was, its wrist 12 cm from its markers. Registered around the
+    elbow, every forearm marker gets its own point, not a ghost beside it; with the forearm's points gone,
+    nothing is found."""
+    from protocol.skeleton import SEGMENTS
+    from service.kinematics import world_frames_np
+
+    perf = perform(3, duration_s=0.1)
+    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
+                                 perf.joint_offsets_m, True)
+    rng = np.random.default_rng(3)
+    R_old = Rotation.from_rotvec(rng.normal(0.0, 0.2, (14, 3))).as_matrix()
+    t = np.array([0.3, -0.2, 0.95])
+    R_new = R_old.copy()
+    fore = SEGMENTS.index("r_forearm")
+    R_new[fore] = Rotation.from_euler("y", 80, degrees=True).as_matrix() @ R_old[fore]
+
+    def markers(R):
+        Rw, pw = world_frames_np(t, R, perf.joint_offsets_m)
+        return np.einsum("mij,mj->mi", Rw[perf.marker_segment], perf.marker_offsets_m) + pw[perf.marker_segment]
+
+    old, now = markers(R_old), markers(R_new)
+    on_forearm = perf.marker_segment == fore
+    assert on_forearm.sum() >= 3 and np.linalg.norm(now - old, axis=1)[on_forearm].max() > 0.1
+    st = tracker.new_state(model, old, t_ns(0))
+    st.t_root_m, st.R_parent_segment = t, R_old
+    labeled = ~on_forearm
+    cur = np.where(labeled[:, None], now, np.nan)
+    ghosts = now[on_forearm] + rng.normal(0.0, 0.04, (on_forearm.sum(), 3))
+    order = rng.permutation(len(now) + len(ghosts))
+    points = np.concatenate([now, ghosts])[order]
+    truth = np.concatenate([np.arange(len(now)), np.full(len(ghosts), -2)])[order]
+    free = np.isin(truth, np.flatnonzero(on_forearm)) | (truth == -2)
+
+    found = tracker._search_segments(model, st, points, free, labeled, cur, on_forearm)
+    assert found == {int(i): int(np.flatnonzero(truth == i)[0]) for i in np.flatnonzero(on_forearm)}
+    assert tracker._search_segments(model, st, points, truth == -2, labeled, cur, on_forearm) == {}
+
+
 def run_tracker(points_m: np.ndarray, seed_frames: int, shuffle_seed: int = 0, ghosts_m=None):
     """Seed, then step every later frame with the points shuffled; returns per frame the true marker each
     marker slot was given (-1 = none, -2 = a ghost)."""
