@@ -76,19 +76,6 @@ def segment_transforms(
     return Rs, ps
 
 
-def world_frames_np(t_world_root: np.ndarray, R_parent_segment: np.ndarray, joint_offsets_m: np.ndarray):
-    """`segment_transforms` in numpy, for one pose off the jitted path (the tracker's segment search):
-    world rotations (14, 3, 3) and origins (14, 3) [m]."""
-    Rs = np.empty((len(PARENTS), 3, 3))
-    ps = np.empty((len(PARENTS), 3))
-    Rs[0], ps[0] = R_parent_segment[0], t_world_root
-    for i in range(1, len(PARENTS)):
-        p = PARENTS[i]
-        Rs[i] = Rs[p] @ R_parent_segment[i]
-        ps[i] = ps[p] + Rs[p] @ joint_offsets_m[i]
-    return Rs, ps
-
-
 def marker_positions(
     Rs_world_segment: jax.Array, ps_world_segment: jax.Array, marker_segment: jax.Array, marker_offsets_m: jax.Array
 ) -> jax.Array:

@@ -38,9 +38,8 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from service.calibration import rigid_motion
+from service.calibration import rigid_motion, world_transforms
 from service.config import EngineConfig
-from service.kinematics import world_frames_np
 
 N_PARTNERS = 8
 LOOSE_SPREAD_M = 0.015  # partners misfitting more than this hand the prediction to a well-fitting skeleton
@@ -463,7 +462,7 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
     marker, and the hypothesis placing most markers on points wins, if no other assignment does as well
     (two mirror-image markers alone stay unfound)."""
     found: dict[int, int] = {}
-    _, pw = world_frames_np(st.t_root_m, st.R_parent_segment, model.joint_offsets_m)
+    _, pw = world_transforms(st.t_root_m, st.R_parent_segment, model.joint_offsets_m)
     pool = np.flatnonzero(cand)
     if len(pool) == 0:
         return found

@@ -130,7 +130,7 @@ def test_a_segment_the_fit_lost_is_found_around_its_joint():
     elbow, every forearm marker gets its own point, not a ghost beside it; with the forearm's points gone,
     nothing is found."""
     from protocol.skeleton import SEGMENTS
-    from service.kinematics import world_frames_np
+    from service.calibration import world_transforms
 
     perf = perform(3, duration_s=0.1)
     model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
@@ -143,7 +143,7 @@ def test_a_segment_the_fit_lost_is_found_around_its_joint():
     R_new[fore] = Rotation.from_euler("y", 80, degrees=True).as_matrix() @ R_old[fore]
 
     def markers(R):
-        Rw, pw = world_frames_np(t, R, perf.joint_offsets_m)
+        Rw, pw = world_transforms(t, R, perf.joint_offsets_m)
         return np.einsum("mij,mj->mi", Rw[perf.marker_segment], perf.marker_offsets_m) + pw[perf.marker_segment]
 
     old, now = markers(R_old), markers(R_new)
