@@ -42,6 +42,9 @@ from service.calibration import rigid_motion, world_transforms
 from service.config import EngineConfig
 
 N_PARTNERS = 8
+PARTNER_MIN_SAMPLES = 20  # a pair distance sampled fewer times cannot make two markers partners: its
+# spread is not known yet (a sternum marker hidden through the seed took two arm markers seen with it in
+# 3 frames as its most rigid partners, and was never placed again: squat)
 LOOSE_SPREAD_M = 0.015  # partners misfitting more than this hand the prediction to a well-fitting skeleton
 SKELETON_TRUSTED_RMS_M = 0.015  # a skeleton fit with a lower RMS residual may predict markers
 MAX_GATE_FACTOR = 1.5  # re-acquisition gate at most this times reacquire_gate_m
@@ -200,7 +203,7 @@ def _update_partners(st: TrackState) -> None:
     """For every marker, the K partners whose distance to it varies least (ties broken by nearness)."""
     m = len(st.pos_m)
     score = np.sqrt(st.dist_var_m2) + 0.02 * st.dist_mean_m
-    score = np.where(st.dist_n >= 3, score, _BIG)
+    score = np.where(st.dist_n >= PARTNER_MIN_SAMPLES, score, _BIG)
     np.fill_diagonal(score, _BIG)
     k = min(N_PARTNERS, m - 1)
     order = np.argsort(score, axis=1)[:, :k]

@@ -86,6 +86,19 @@ def test_reacquisition_gate_is_capped_however_loose_the_partners(monkeypatch, ha
         assert gates_seen[-1][3] > 5 * CONFIG.reacquire_gate_m
 
 
+def test_partners_need_a_distance_sampled_often_enough():
+    """A pair seen together in a few frames only looks perfectly rigid (no spread yet): it must not outrank
+    a pair whose small spread was measured over many frames."""
+    model = tracker.SubjectModel("P", tuple("abc"), np.full(3, -1), np.zeros((3, 3)), np.zeros((14, 3)))
+    st = tracker.new_state(model, np.zeros((3, 3)), 0)
+    st.dist_n[:] = [[0, 5, 100], [5, 0, 5], [100, 5, 0]]
+    st.dist_mean_m[:] = 0.1
+    st.dist_var_m2[:] = [[0, 0, 0.002**2], [0, 0, 0], [0.002**2, 0, 0]]
+    tracker._update_partners(st)
+    assert st.partners[0, 0] == 2 and 1 not in st.partners[0]
+    assert (st.partners[1] == -1).all()  # nothing sampled often enough yet
+
+
 def test_relocate_finds_a_lost_subject_moved_and_turned():
     """A lost subject's last marker cloud is registered onto the unclaimed points: found 1 m away and
     turned 100 degrees, among ghosts; not found where nothing like it is."""
