@@ -11,8 +11,8 @@ from __future__ import annotations
 import collections
 import concurrent.futures
 import dataclasses
-import statistics
 import json
+import statistics
 import time
 from pathlib import Path
 
@@ -116,7 +116,7 @@ class _StreamClock:
         if frame > self.frame:
             df = frame - self.frame
             self.periods_ns.append((stamp_ns - self.stamp_ns) / df)
-            period = statistics.median(self.periods_ns)  # 31 floats: np.median costs ~30x more
+            period = statistics.median(self.periods_ns)  # 31 floats: 4 us, np.median 80 us
             expected = self.t_ns + df * period
             self.t_ns = stamp_ns if abs(stamp_ns - expected) <= 0.25 * period else int(expected)
             self.frame, self.stamp_ns = frame, stamp_ns
@@ -147,7 +147,7 @@ class Engine:
 
     # ---------------------------------------------------------------- lifecycle
     def warm_up(self) -> float:
-        """Compile the jitted solve and FK once (or load them from the persistent cache)."""
+        """Compile the jitted solve and FK for every padded size (or load them from the persistent cache)."""
         t0 = time.perf_counter()
         self.solver.warm_up()
         return time.perf_counter() - t0
