@@ -53,7 +53,7 @@ class SubjectOutput:
     predicted_m: np.ndarray  # (M, 3) float32, model position of every marker (fills occlusions)
     solved: bool  # whether the pose optimisation ran this frame
     iterations: int  # Gauss-Newton iterations (0 when skipped)
-    residual_m: float  # RMS marker residual of the fit [m], robustly weighted (NaN when skipped)
+    residual_m: float  # RMS marker residual of the fit [m] (NaN when skipped)
     root_position_m: np.ndarray  # (3,) float32
     rotations_xyzw: np.ndarray  # (14, 4) float32: root in world, others relative to parent
     joint_angles_rad: np.ndarray  # (13, 3) float32, protocol.skeleton.JOINT_ANGLE_CONVENTION

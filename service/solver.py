@@ -36,7 +36,7 @@ class FitResult:
     t_world_root_m: np.ndarray  # (3,)
     R_parent_segment: np.ndarray  # (14, 3, 3)
     predicted_m: np.ndarray  # (max_markers, 3) model position of every marker slot
-    residual_rms_m: float  # over observed markers, each weighted as in the fit
+    residual_rms_m: float  # over observed markers
     iterations: int
     ok: bool  # the solver converged or stopped at max_steps without failing
 
@@ -101,11 +101,8 @@ def _solve(t0, base_R, joint_offsets, marker_segment, marker_offsets, observed, 
     R = rotvec_to_matrix(x[3:].reshape(N_SEGMENTS, 3)) @ base_R
     Rs, ps = segment_transforms(t, R, joint_offsets)
     pred = marker_positions(Rs, ps, marker_segment, marker_offsets)
-    # RMS over the observed markers, each counted with its (squared) weight: with robust weights, the
-    # residual of the labels the fit trusts
-    w2 = jnp.where(mask, weight**2, 0.0)
     err2 = jnp.where(mask, jnp.sum((pred - jnp.where(mask[:, None], observed, 0.0)) ** 2, axis=1), 0.0)
-    rms = jnp.sqrt(jnp.sum(w2 * err2) / jnp.maximum(jnp.sum(w2), 1e-12))
+    rms = jnp.sqrt(jnp.sum(err2) / jnp.maximum(jnp.sum(mask), 1))
     return t, R, pred, rms, sol.stats["num_steps"], ok
 
 

@@ -24,8 +24,6 @@
    the labels are published and is collected at the next frame (`collect`), whose skeleton predictions
    are its markers carried forward at their velocity. The labels never wait for a solve; the pose waits
    only for its own. Markers hidden long are re-acquired inside a gate that widens with the time hidden.
-   Each label counts in the fit by its distance from the last one (Cauchy weights): one wrong label cannot
-   drag a limb onto itself.
 
 Rigid partners are learned online: running statistics of every pairwise marker distance (only over
 labeled frames) rank, for each marker, the partners whose distance varies least.
@@ -60,7 +58,6 @@ MAX_HIDDEN_GATE_FACTOR = 2.0  # ... up to this many times reacquire_gate_m
 RELOCATE_RADIUS_M = 2.5  # a lost subject is looked for among the unclaimed points this far (horizontally) ...
 RELOCATE_MIN_SHARE = 0.3  # ... and found when this share of its markers has a point after registration
 RELOCATE_GATE_FACTOR = 0.5  # ... within this times reacquire_gate_m (the rigid parts; limbs moved meanwhile)
-ROBUST_SCALE_M = 0.08  # a label this far from the last fit counts half in the next (`robust_weights`)
 SEGMENT_DISTANCE_TOL_M = 0.015  # markers re-found together on an unobserved segment keep the model's distances
 SEARCH_LOST_FRAMES = 3  # a marker unlabeled this many frames on a segment the fit cannot place is searched for
 SEARCH_EVERY_FRAMES = 3  # ... on every 3rd frame, around its segment's joint (`_search_segments`)
@@ -123,8 +120,7 @@ class TrackState:
     last_labeled_t_ns: int = 0
     fit_rms_m: float = float("nan")  # of the latest completed fit
     fit_iterations: int = 0  # of the latest completed fit
-    # the fit launched on a frame's final labels, (PendingFit, t_ns, labeled positions (M, 3)), collected at
-    # the next frame (`collect`)
+    # the fit launched on a frame's final labels, (PendingFit, t_ns), collected at the next frame (`collect`)
     pending: tuple | None = None
     skel_pred_m: np.ndarray | None = None  # (M, 3) marker positions of the latest completed fit ...
     skel_vel_m_s: np.ndarray | None = None  # (M, 3) ... their velocity (from the fit before it) ...
@@ -133,7 +129,6 @@ class TrackState:
     vel_measured: np.ndarray | None = None  # (M,) bool: vel_m_s comes from two observations
     acc_dt_s: float = 0.0  # the frame interval acc_m_s2 was measured over
     hidden_frames: np.ndarray | None = None  # (M,) int: frames since the marker was last labeled
-    fit_resid_m: np.ndarray | None = None  # (M,) each label's distance from the latest completed fit, NaN = none
 
 
 @dataclasses.dataclass(frozen=True)
@@ -815,20 +810,8 @@ def _launch(model: SubjectModel, st: TrackState, solver, cur: np.ndarray, labele
     if labeled.sum() < 4:
         return False
     st.pending = (solver.launch(st.t_root_m, st.R_parent_segment, model.joint_offsets_m, model.marker_segment,
-                                model.marker_offsets_m, cur, labeled, robust_weights(st.fit_resid_m, labeled)),
-                  t_ns, np.where(labeled[:, None], cur, np.nan))
+                                model.marker_offsets_m, cur, labeled), t_ns)
     return True
-
-
-def robust_weights(resid_m: np.ndarray | None, labeled: np.ndarray) -> np.ndarray | None:
-    """Per-label weights of the next fit from each label's distance r to the last one: 1 / sqrt(1 + (r /
-    ROBUST_SCALE_M)^2) on the residual (Cauchy's loss, iterated across frames). One wrong label (a ghost
-    caught, two crossed) then cannot drag the fitted limb onto itself, and the fit, still right, says
-    which label is wrong. None (all 1) before any fit."""
-    if resid_m is None or len(resid_m) != len(labeled):
-        return None
-    r = np.where(np.isfinite(resid_m), resid_m, 0.0)
-    return 1.0 / np.sqrt(1.0 + (r / ROBUST_SCALE_M) ** 2)
 
 
 def collect(model: SubjectModel, st: TrackState):
@@ -838,13 +821,12 @@ def collect(model: SubjectModel, st: TrackState):
     Idempotent; in place."""
     if st.pending is None:
         return None
-    pending, t_ns, observed = st.pending
+    pending, t_ns = st.pending
     st.pending = None
     fit = pending.result()
     if not fit.ok or not np.isfinite(fit.residual_rms_m) or len(fit.predicted_m) != model.n_markers:
         st.skel_pred_m = None
         return None
-    st.fit_resid_m = _norm(fit.predicted_m - observed)
     vel = np.zeros_like(fit.predicted_m)
     gap_s = (t_ns - st.skel_t_ns) * 1e-9
     if st.skel_pred_m is not None and len(st.skel_pred_m) == model.n_markers and 0 < gap_s <= SKELETON_VELOCITY_GAP_S:

@@ -99,15 +99,6 @@ def test_partners_need_a_distance_sampled_often_enough():
     assert (st.partners[1] == -1).all()  # nothing sampled often enough yet
 
 
-def test_robust_weights_discount_labels_far_from_the_last_fit():
-    labeled = np.ones(4, bool)
-    assert tracker.robust_weights(None, labeled) is None
-    w = tracker.robust_weights(np.array([0.0, tracker.ROBUST_SCALE_M, 0.5, np.nan]), labeled)
-    np.testing.assert_allclose(w[[0, 1, 3]], [1.0, 1 / np.sqrt(2), 1.0])
-    assert w[2] < 0.2
-    assert tracker.robust_weights(np.zeros(3), labeled) is None  # another model's residuals
-
-
 def test_relocate_finds_a_lost_subject_moved_and_turned():
     """A lost subject's last marker cloud is registered onto the unclaimed points: found 1 m away and
     turned 100 degrees, among ghosts; not found where nothing like it is."""
