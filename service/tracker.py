@@ -469,11 +469,10 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
     pool = np.flatnonzero(cand)
     if len(pool) == 0:
         return found
-    seg_of = model.marker_segment
+    seg_of, off = model.marker_segment, model.marker_offsets_m
     for k in np.unique(seg_of[lost]):
         idx = np.flatnonzero((seg_of == k) & st.ever_seen)
         lab, los = idx[labeled[idx]], idx[lost[idx]]
-        off = model.marker_offsets_m
         o = pw[k]
         reach = _norm(points[pool] - o)
         near = pool[reach < _norm(off[idx]).max() + SEARCH_JOINT_TOL_M]
@@ -679,13 +678,14 @@ def step(
     rows, cols, _ = _assign(pred_missing, gate_missing, points, ~taken)
     reacquired = np.zeros(m, bool)
 
-    def accept(rows, cols, hold=None):
-        """Take re-acquisitions (rows -> cols) but those their rigid partners' distances or `hold` refuse."""
+    def accept(rows, cols, segment_rule: bool):
+        """Take re-acquisitions (rows -> cols) but those their rigid partners' distances refuse and, with
+        segment_rule, those `_unsure_on_unseen_segment` holds back."""
         point_index[rows] = cols
         cur = _gather(points, point_index)
         wrong = distance_misfit(st, cur, point_index >= 0, rows)[rows] > Z_SUSPECT
-        if hold is not None:
-            wrong |= hold(rows, cur)
+        if segment_rule:
+            wrong |= _unsure_on_unseen_segment(model, labeled, rows, cur, use_skel, st.ever_seen)
         point_index[rows[wrong]] = -1
         rows, cols = rows[~wrong], cols[~wrong]
         reacquired[rows] = True
@@ -694,8 +694,7 @@ def step(
         return point_index >= 0, _gather(points, point_index)
 
     if len(rows):
-        hold = (lambda r, c: _unsure_on_unseen_segment(model, labeled, r, c, use_skel, st.ever_seen)) if model.has_skeleton else None
-        labeled, cur = accept(rows, cols, hold)
+        labeled, cur = accept(rows, cols, segment_rule=model.has_skeleton)
     # Markers the fit cannot place, unlabeled a few frames though in view: their segment is looked for
     # around its joint (a hand flicked while hidden is found where the fit never looks).
     if model.has_skeleton and st.skel_pred_m is not None and st.frames % SEARCH_EVERY_FRAMES == 0:
@@ -703,7 +702,7 @@ def step(
         if lost.any():
             found = _search_segments(model, st, points, ~taken, labeled, cur, lost)
             if found:
-                labeled, cur = accept(np.array(list(found)), np.array(list(found.values())))
+                labeled, cur = accept(np.array(list(found)), np.array(list(found.values())), segment_rule=False)
 
     # 5. Reject labels the model disagrees with.
     if skel_pred is not None and residual < 0.5 * config.reject_residual_m:
