@@ -166,8 +166,8 @@ class PoseSolver:
 
     def warm_up(self) -> None:
         """Compile (or load from the persistent cache) the solve and the FK for every padded size."""
+        t, R, joints = np.zeros(3), np.tile(np.eye(3), (N_SEGMENTS, 1, 1)), np.zeros((N_SEGMENTS, 3))
         for n in self.sizes:
-            t, R, joints = np.zeros(3), np.tile(np.eye(3), (N_SEGMENTS, 1, 1)), np.zeros((N_SEGMENTS, 3))
             seg, offsets = np.zeros(n, int), np.zeros((n, 3))
             self.fit(t, R, joints, seg, offsets, np.zeros((n, 3)), np.ones(n, bool))
             self.predict(t, R, joints, seg, offsets)

@@ -475,10 +475,10 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
         lab, los = idx[labeled[idx]], idx[lost[idx]]
         o = pw[k]
         reach = _norm(points[pool] - o)
-        near = pool[reach < _norm(off[idx]).max() + SEARCH_JOINT_TOL_M]
+        within = reach < _norm(off[idx]).max() + SEARCH_JOINT_TOL_M
+        near, r_near = pool[within], reach[within]
         if len(near) == 0:
             continue
-        r_near = _norm(points[near] - o)
         options = {i: near[np.abs(r_near - _norm(off[i])) < SEARCH_JOINT_TOL_M] for i in los}
         base_a = np.vstack([np.zeros((1, 3)), off[lab]])
         base_b = np.vstack([o[None], cur[lab]])
