@@ -252,6 +252,28 @@ def rigid_motion(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R, cb - R @ ca
 
 
+def layout_residuals(history_m: np.ndarray, marker_segment: np.ndarray, marker_offsets_m: np.ndarray, n_frames: int = 40) -> np.ndarray:
+    """How well each marker keeps its offset in its segment over labeled history (F, M, 3): the median,
+    over up to n_frames frames, of its distance [m] from where the rigid motion (Kabsch) of its segment's
+    markers seen in that frame (3 or more) puts it. NaN where never measured. Skin over a joint, a marker
+    given the wrong segment or a hand marker on the forearm read centimetres; markers of one bone, a few
+    millimetres."""
+    F, M = history_m.shape[:2]
+    pick = np.linspace(0, F - 1, min(n_frames, F)).astype(int) if F else np.zeros(0, int)
+    res = np.full((len(pick), M), np.nan)
+    for r, f in enumerate(pick):
+        seen = np.isfinite(history_m[f, :, 0])
+        for k in np.unique(marker_segment[seen]):
+            idx = np.flatnonzero(seen & (marker_segment == k))
+            if len(idx) < 3:
+                continue
+            R, t = rigid_motion(marker_offsets_m[idx], history_m[f, idx])
+            res[r, idx] = np.linalg.norm(marker_offsets_m[idx] @ R.T + t - history_m[f, idx], axis=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # markers never measured: all-NaN columns
+        return np.nanmedian(res, axis=0) if len(pick) else np.full(M, np.nan)
+
+
 def fill_reference(history_m: np.ndarray, n_near: int = 5) -> np.ndarray:
     """One frame (M, 3) for calibration from labeled history (F, M, 3): the frame with most markers seen,
     with markers unseen there moved in from the nearest frame that has them, by the rigid motion (Kabsch)

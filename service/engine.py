@@ -196,6 +196,7 @@ class Engine:
                 marker_segment=m.marker_segment, marker_offsets_m=m.marker_offsets_m, joint_offsets_m=m.joint_offsets_m,
                 pos_m=s.state.pos_m, ever_seen=s.state.ever_seen, t_root_m=s.state.t_root_m, R_parent_segment=s.state.R_parent_segment,
                 dist_n=s.state.dist_n, dist_mean_m=s.state.dist_mean_m, dist_var_m2=s.state.dist_var_m2,
+                **({} if m.layout_rms_m is None else {"layout_offsets_m": m.layout_offsets_m, "layout_rms_m": m.layout_rms_m}),
             )
         return list(self._subjects)
 
@@ -210,6 +211,9 @@ class Engine:
                     model = tracker.SubjectModel(
                         meta["name"], tuple(meta["markers"]), z["marker_segment"], z["marker_offsets_m"], z["joint_offsets_m"],
                         bool(meta["has_skeleton"]),
+                        # files written before the layout check have no layout: the check stays off for them
+                        z["layout_offsets_m"] if "layout_offsets_m" in z.files else None,
+                        z["layout_rms_m"] if "layout_rms_m" in z.files else None,
                     )
                     pos = np.where(z["ever_seen"][:, None], z["pos_m"], np.nan)
                     st = tracker.new_state(model, pos, 0)
@@ -326,8 +330,9 @@ class Engine:
             result = future.result()
             if result is None or len(result[0]) != len(s.model.markers):
                 return
-            seg, off, joints, t_root, R = result
-            s.model = dataclasses.replace(s.model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints, has_skeleton=True)
+            seg, off, joints, t_root, R, layout = result
+            s.model = dataclasses.replace(s.model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints,
+                                          has_skeleton=True, layout_offsets_m=off, layout_rms_m=layout)
             s.state.t_root_m, s.state.R_parent_segment = t_root, R
             # bring the calibration pose (of a frame CALIBRATE_APPLY_FRAMES back) up to now on the latest
             # labels: several solves, as one of max_steps iterations can stop short of a limb that moved
@@ -543,7 +548,10 @@ class Engine:
             near = int(np.argmin(np.linalg.norm(s.state.pos_m - p_new, axis=1)))
             seg[-1] = s.model.marker_segment[near]
             off[-1] = Rs[seg[-1]].T @ (p_new - ps[seg[-1]])
-        model = dataclasses.replace(s.model, markers=markers, marker_segment=seg, marker_offsets_m=off)
+        layout = {}
+        if s.model.layout_rms_m is not None:  # the new marker's place in the layout is not measured
+            layout = dict(layout_rms_m=np.append(s.model.layout_rms_m, np.nan), layout_offsets_m=np.vstack([s.model.layout_offsets_m, off[-1:]]))
+        model = dataclasses.replace(s.model, markers=markers, marker_segment=seg, marker_offsets_m=off, **layout)
         old = s.state
         cur = np.vstack([np.where(old.labeled[:, None], old.pos_m, np.nan), track[-1][1][None]])
         st = tracker.new_state(model, cur, frame.t_ns, np.stack(hist))
@@ -586,7 +594,8 @@ def _calibrated(hist: np.ndarray):
     except calibration.CalibrationError:
         return None
     # markers never seen yet keep no segment until they are: park them on the pelvis with zero weight
-    return seg, np.where(ok[:, None], off, 0.0), joints, t_root, R
+    off = np.where(ok[:, None], off, 0.0)
+    return seg, off, joints, t_root, R, calibration.layout_residuals(hist, seg, off)
 
 
 def refined_model(solver, model, hist, t0, R0, n_frames: int = 40, rounds: int = 2):
@@ -599,6 +608,7 @@ def refined_model(solver, model, hist, t0, R0, n_frames: int = 40, rounds: int =
     if len(good) < 12:
         return None
     pick = good[np.linspace(0, len(good) - 1, min(n_frames, len(good))).astype(int)]
+    marker_segment0, layout_rms_m = model.marker_segment, model.layout_rms_m
     frames = hist[pick]
     for _ in range(rounds):
         # poses of the picked frames, newest first, each solve warm-started from the one after it
@@ -619,7 +629,11 @@ def refined_model(solver, model, hist, t0, R0, n_frames: int = 40, rounds: int =
             off[moved] = np.nanmean(local[:, moved], axis=0)
         off, joints = calibration.refine(frames, Rs, seg, off, model.joint_offsets_m)
         model = dataclasses.replace(model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints)
-    return model
+    # the layout is vouched for by the calibration's frames (given labels, in seeded mode), never by the
+    # engine's own labels, which may hold the very permutations the layout check is there to undo: a
+    # marker that changed segment here loses its say
+    layout = None if layout_rms_m is None else np.where(model.marker_segment == marker_segment0, layout_rms_m, np.nan)
+    return dataclasses.replace(model, layout_rms_m=layout)
 
 
 def _positions(markers, marks: dict, points: np.ndarray) -> np.ndarray:

@@ -18,6 +18,9 @@
    while hidden, where the fit, with nothing to hold it, kept it), are looked for by registering their
    segment around its joint. A subject with fewer than 4 labels (it left the volume, or was hidden whole)
    is looked for by registering its last marker cloud onto the unclaimed points nearby (rigid ICP).
+   Every SHAPE_EVERY_FRAMES frames, labels permuted within a segment (a wrist triad after a fast pass,
+   tracked permuted since, which the partner statistics absorb) are put back in the order the segment's
+   calibrated marker layout says (`_relabel_by_shape`).
 4. The skeleton fit (optimistix Gauss-Newton, `service.solver`) is launched on the frame's final labels when
    a hidden marker is left that rigid partners cannot place, and at least every `max_skip_frames` frames
    (and `max_skip_s` seconds); otherwise it is skipped. It computes asynchronously (XLA's thread) while
@@ -32,6 +35,8 @@ labeled frames) rank, for each marker, the partners whose distance varies least.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import itertools
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -39,6 +44,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from service.calibration import rigid_motion, world_transforms
+from protocol.skeleton import N_SEGMENTS
 from service.config import EngineConfig
 
 N_PARTNERS = 8
@@ -64,6 +70,18 @@ SEARCH_EVERY_FRAMES = 3  # ... on every 3rd frame, around its segment's joint (`
 SEARCH_JOINT_TOL_M = 0.03  # a point this close to a marker's distance from its joint may be it ...
 SEARCH_PAIR_TOL_M = 0.012  # ... two points this close to the model distance between two of its markers ...
 SEARCH_INLIER_M = 0.012  # ... and a marker with a point this close to where the registered segment puts it
+SHAPE_EVERY_FRAMES = 4  # segment layouts are checked on every this many frames
+SHAPE_LAYOUT_TOL_M = 0.02  # only markers that kept their offset in their segment this well [m] take part ...
+SHAPE_MIN_RMS_M = 0.012  # a segment whose labels fit its calibrated marker layout this well is not re-checked
+SHAPE_GAIN = 0.5  # labels of a segment are permuted when that fits its layout under this times as badly ...
+SHAPE_GOOD_RMS_M = 0.015  # ... and as well as true labels do [m] RMS
+SHAPE_DISTINCT_M = 0.01  # ... and only relabellings that move the layout's own markers this far [m] RMS
+SHAPE_CONFIRM = 2  # ... when the same relabelling wins this many checks running
+SHAPE_FIT_ALPHA = SHAPE_EVERY_FRAMES / 200  # the share of checks (over ~200 frames) on which a segment's labels fit its layout, a running mean ...
+SHAPE_TRUSTED_SHARE = 0.3  # ... at least this, over more than SHAPE_MIN_CHECKS checks, for its layout to be trusted
+SHAPE_MIN_CHECKS = 5
+SHAPE_MAX_JUMP_M = 0.2  # ... and only relabellings that move no label farther than this
+SHAPE_ALL_MAPS = 5  # segments with up to this many labels try every permutation of them, larger ones every swap
 PROBATION_FRAMES = 60  # frames a re-acquired label is re-checked against the partners' long-run distances
 CHECK_RESIDUAL_M = 0.006  # a tracked label this far [m] (+10 % of the step) from its prediction is checked
 CHECK_EVERY_FRAMES = 4  # every tracked label is checked against its rigid partners this often anyway
@@ -90,6 +108,12 @@ class SubjectModel:
     marker_offsets_m: np.ndarray  # (M, 3) offset in the segment frame
     joint_offsets_m: np.ndarray  # (14, 3) segment origin in the parent frame
     has_skeleton: bool = False
+    # The segments' marker layouts as first calibrated (from given labels, in seeded mode), which the
+    # tracker checks labels against (`_relabel_by_shape`): refinements on the engine's own labels move
+    # marker_offsets_m, never these. (M, 3) offsets, and (M,) how well each marker kept its offset over
+    # the calibration frames [m] (`calibration.layout_residuals`); None = not measured.
+    layout_offsets_m: np.ndarray | None = None
+    layout_rms_m: np.ndarray | None = None
 
     @property
     def n_markers(self) -> int:
@@ -129,6 +153,11 @@ class TrackState:
     vel_measured: np.ndarray | None = None  # (M,) bool: vel_m_s comes from two observations
     acc_dt_s: float = 0.0  # the frame interval acc_m_s2 was measured over
     hidden_frames: np.ndarray | None = None  # (M,) int: frames since the marker was last labeled
+    # per segment, the relabelling its layout asked for on the last checks and how many checks running
+    shape_votes: dict = dataclasses.field(default_factory=dict)
+    shape_symmetry: dict = dataclasses.field(default_factory=dict)  # (layout, markers) -> RMS of each relabelling of the layout onto itself
+    shape_fit: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(N_SEGMENTS))  # per segment, SHAPE_FIT_ALPHA
+    shape_checks: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(N_SEGMENTS))  # per segment, checks so far
 
 
 @dataclasses.dataclass(frozen=True)
@@ -523,6 +552,158 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
     return found
 
 
+def _kabsch_rms(A: np.ndarray, B: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """RMS misfit (C,) of the best rigid motion taking A onto B, both (C, N, 3), over the points where
+    w (C, N) is True. The optimal trace is s1 + s2 + sign(det H) s3 over the singular values of the
+    cross-covariance H (Kabsch), so no rotation is formed, and they are the square roots of H^T H's
+    eigenvalues, in closed form: 10x faster than numpy's batched SVD of 3 x 3 matrices, which costs
+    ~4 us each and runs on 100+ relabellings per segment."""
+    wf = w[..., None].astype(float)
+    n = wf.sum(1)  # (C, 1)
+    a = (A - (A * wf).sum(1, keepdims=True) / n[:, None]) * wf
+    b = (B - (B * wf).sum(1, keepdims=True) / n[:, None]) * wf
+    H = a.transpose(0, 2, 1) @ b
+    s = np.sqrt(np.maximum(_sym3_eigenvalues(H.transpose(0, 2, 1) @ H), 0.0))
+    d = np.sign(np.linalg.det(H))
+    sq = (a * a).sum((1, 2)) + (b * b).sum((1, 2)) - 2.0 * (s[:, 0] + s[:, 1] + d * s[:, 2])
+    return np.sqrt(np.maximum(sq, 0.0) / n[:, 0])
+
+
+def _sym3_eigenvalues(M: np.ndarray) -> np.ndarray:
+    """Eigenvalues (C, 3), largest first, of symmetric 3 x 3 matrices (C, 3, 3) (the trigonometric
+    solution of the characteristic cubic)."""
+    q = np.trace(M, axis1=1, axis2=2) / 3.0
+    p1 = M[:, 0, 1] ** 2 + M[:, 0, 2] ** 2 + M[:, 1, 2] ** 2
+    diag = np.diagonal(M, axis1=1, axis2=2) - q[:, None]
+    p = np.sqrt(((diag**2).sum(1) + 2.0 * p1) / 6.0)
+    safe = np.where(p > 0, p, 1.0)
+    Bm = (M - q[:, None, None] * np.eye(3)) / safe[:, None, None]
+    phi = np.arccos(np.clip(np.linalg.det(Bm) / 2.0, -1.0, 1.0)) / 3.0
+    e1 = q + 2.0 * p * np.cos(phi)
+    e3 = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    return np.stack([e1, 3.0 * q - e1 - e3, e3], axis=1)
+
+
+@functools.lru_cache(maxsize=None)
+def _relabellings(n: int) -> np.ndarray:
+    """(C, n) ways to give n labeled points (now on slots 0..n-1) each other's labels, the identity first:
+    every permutation for small segments, else every swap of two (a torso of 7: 21, not 5040)."""
+    if n <= SHAPE_ALL_MAPS:
+        return np.array(list(itertools.permutations(range(n))), dtype=int)
+    maps = [list(range(n))]
+    for i, j in itertools.combinations(range(n), 2):
+        p = list(range(n))
+        p[i], p[j] = j, i
+        maps.append(p)
+    return np.array(maps, dtype=int)
+
+
+def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, point_index: np.ndarray, cur: np.ndarray) -> np.ndarray:
+    """Permute the labels within a segment when its calibrated marker layout says they are permuted.
+    In place; returns the markers whose point changed.
+
+    Markers of one segment keep their offsets; a wrist-and-finger triad or a foot's markers permuted by a
+    fast pass or a re-acquisition after occlusion keep being tracked permuted, and the long-run partner
+    distances absorb it (their spread grows until nothing looks wrong). The layout does not: on 135_02
+    the true labels of a forearm fit it to ~11 mm RMS, any permutation of them to 30-80 mm, every frame.
+    So each segment's labeled points are registered (Kabsch) onto the offsets of the markers they carry,
+    and, where that fits poorly, onto every permutation of their labels."""
+    m = len(point_index)
+    changed = np.zeros(m, bool)
+    labeled = point_index >= 0
+    seg = model.marker_segment
+    if model.layout_rms_m is None or len(model.layout_rms_m) != m or model.layout_offsets_m is None:
+        return changed
+    layout = model.layout_offsets_m
+    slots = st.ever_seen & (seg >= 0) & (model.layout_rms_m < SHAPE_LAYOUT_TOL_M)  # NaN compares False
+    counts = np.bincount(seg[labeled & slots], minlength=int(seg.max()) + 1)
+    ks = np.flatnonzero(counts >= 3)
+    if len(ks) == 0:
+        return changed
+    groups = [np.flatnonzero(labeled & slots & (seg == k)) for k in ks]
+    width = max(len(g) for g in groups)
+    A = np.zeros((len(ks), width, 3))
+    B = np.zeros((len(ks), width, 3))
+    w = np.zeros((len(ks), width), bool)
+    for r, g in enumerate(groups):
+        A[r, : len(g)], B[r, : len(g)], w[r, : len(g)] = layout[g], cur[g], True
+    rms0 = _kabsch_rms(A, B, w)
+    for k in ks[rms0 <= SHAPE_MIN_RMS_M]:
+        st.shape_votes.pop(int(k), None)
+    fits = rms0 <= SHAPE_MIN_RMS_M
+    # every permutation of every misfitting segment's labels, registered in one batch (padded to the
+    # widest segment): one call instead of one per segment, which cost more than the arithmetic
+    flagged = np.flatnonzero(~fits)
+    proposals = {}
+    if len(flagged):
+        all_maps = [_relabellings(len(groups[r])) for r in flagged]
+        n_maps = np.array([len(mp) for mp in all_maps])
+        Am = np.zeros((n_maps.sum(), width, 3))
+        Bm = np.zeros_like(Am)
+        wm = np.zeros(Am.shape[:2], bool)
+        start = np.concatenate([[0], np.cumsum(n_maps)])
+        for r, maps, s0, s1 in zip(flagged, all_maps, start[:-1], start[1:]):
+            lab = groups[r]
+            Am[s0:s1, : len(lab)], Bm[s0:s1, : len(lab)], wm[s0:s1, : len(lab)] = layout[lab[maps]], cur[lab], True
+        rms_all = _kabsch_rms(Am, Bm, wm)
+    for r, maps, s0, s1 in zip(flagged, all_maps, start[:-1], start[1:]) if len(flagged) else ():
+        lab, rms = groups[r], rms_all[s0:s1].copy()
+        fits[r] = rms.min() < SHAPE_GOOD_RMS_M
+        # a relabelling the layout itself is symmetric under (a square cluster plate turned by 90 degrees,
+        # two markers equidistant from the rest) cannot be told from the identity: never taken
+        key = lab.tobytes()  # the layout's own symmetries: computed once per set of labeled markers
+        symmetric_rms = st.shape_symmetry.get(key)
+        if symmetric_rms is None:
+            if len(st.shape_symmetry) > 256:
+                st.shape_symmetry.clear()
+            ones = np.ones(maps.shape, bool)
+            symmetric_rms = st.shape_symmetry[key] = _kabsch_rms(layout[lab[maps]], np.broadcast_to(layout[lab], maps.shape + (3,)), ones)
+        # a permutation trades labels between neighbours (a wrist triad, a foot's markers): labels that would
+        # jump across the body tell of a layout calibrated wrong (a seed lying still), not of a permutation
+        jump = _norm(cur[lab][:, None] - cur[lab][None])[np.arange(len(lab)), maps].max(1)
+        rms = np.where((symmetric_rms < SHAPE_DISTINCT_M) | (jump > SHAPE_MAX_JUMP_M), np.inf, rms)
+        rms[0] = np.inf
+        best = int(np.argmin(rms))
+        if rms[best] < min(SHAPE_GAIN * rms0[r], SHAPE_GOOD_RMS_M) and symmetric_rms[best] > 2.0 * rms[best]:
+            proposals[r] = lab[maps[best]]
+        else:
+            st.shape_votes.pop(int(ks[r]), None)
+    # A layout to be trusted fits the labels, or a permutation of them, on most checks; one that seldom
+    # does was calibrated wrong (from a pose that hid which markers move together): it is left alone.
+    share = st.shape_fit[ks]
+    st.shape_checks[ks] += 1
+    alpha = np.maximum(1.0 / st.shape_checks[ks], SHAPE_FIT_ALPHA)  # a plain mean first, then a running one
+    st.shape_fit[ks] = share + alpha * (fits - share)
+    trusted = (share >= SHAPE_TRUSTED_SHARE) & (st.shape_checks[ks] > SHAPE_MIN_CHECKS)
+    for r, new_labels in proposals.items():
+        if not trusted[r]:
+            continue
+        lab = groups[r]
+        # the same relabelling on SHAPE_CONFIRM checks running: one frame's loose marker is no reason
+        moves = tuple(sorted((int(a), int(b)) for a, b in zip(lab, new_labels) if a != b))
+        n_votes = st.shape_votes.get(int(ks[r]), ((), 0))
+        n_votes = n_votes[1] + 1 if n_votes[0] == moves else 1
+        st.shape_votes[int(ks[r])] = (moves, n_votes)
+        if n_votes < SHAPE_CONFIRM:
+            continue
+        del st.shape_votes[int(ks[r])]
+        relabeled = point_index.copy()
+        relabeled[new_labels] = point_index[lab]
+        moved = lab[relabeled[lab] != point_index[lab]]
+        # the long-run partner distances must not object: they have taken a long-standing permutation in
+        # (the target here) but refuse a fresh one (a layout near-symmetric under it, a skin-moved segment)
+        z_now = distance_misfit(st, cur, labeled, moved)[moved]
+        z_new = distance_misfit(st, _gather(points, relabeled), labeled, moved)[moved]
+        z_now, z_new = z_now[np.isfinite(z_now)], z_new[np.isfinite(z_new)]
+        if len(z_new) and np.median(z_new) > max(Z_SUSPECT, 2.0 * (np.median(z_now) if len(z_now) else 0.0)):
+            continue
+        point_index[moved] = relabeled[moved]
+        changed[moved] = True
+    if changed.any():
+        cur[changed] = _gather(points, point_index)[changed]
+    return changed
+
+
 def _assign(pred: np.ndarray, gates: np.ndarray, points: np.ndarray, cand: np.ndarray):
     """Hungarian assignment of markers (rows of pred, gated) to candidate points.
 
@@ -704,11 +885,22 @@ def step(
             if found:
                 labeled, cur = accept(np.array(list(found)), np.array(list(found.values())), segment_rule=False)
 
+    # Labels permuted within a segment (a wrist triad after a fast pass or a re-acquisition) are put back
+    # in the order the segment's marker layout says.
+    relabeled = np.zeros(m, bool)
+    if model.has_skeleton and st.frames % SHAPE_EVERY_FRAMES == 0:
+        relabeled = _relabel_by_shape(model, st, points, point_index, cur)
+        labeled = point_index >= 0
+        if relabeled.any():
+            # the last fit followed the permuted labels (it turned the forearm half a turn to match): its
+            # word on these markers is void until a fit on the new labels (launched below) comes back
+            st.skel_pred_m = None
+
     # 5. Reject labels the model disagrees with.
     if skel_pred is not None and residual < 0.5 * config.reject_residual_m:
         # the model's word counts only where no rigid partners can speak for a marker
         err = _norm(np.where(labeled[:, None], cur - skel_pred, 0.0))
-        bad = labeled & check & ~has_rigid & (err > config.reject_residual_m)
+        bad = labeled & check & ~has_rigid & (err > config.reject_residual_m) & ~relabeled
         if bad.any():
             point_index[bad] = -1
             labeled = point_index >= 0
@@ -718,6 +910,7 @@ def step(
     fallback = np.where(has_rigid[:, None], rpred, coast)
     if skel_pred is not None:
         fallback = np.where((~has_rigid)[:, None], skel_pred, fallback)
+    st.labeled &= ~relabeled  # a relabelled marker's velocity is its old one, not the jump between tracks
     _commit(st, cur, labeled, fallback, t_ns, dt)
     predicted = st.pos_m.copy()
     if skel_pred is not None:
@@ -729,7 +922,7 @@ def step(
     if model.has_skeleton and solver is not None:
         missing = ~labeled & st.ever_seen
         loose = (spread0 > LOOSE_SPREAD_M) & (st.fit_rms_m < SKELETON_TRUSTED_RMS_M)
-        if (missing & (~has_rigid | loose)).any() or st.skipped >= min(config.max_skip_frames, config.max_skip_s / dt - 1e-6):
+        if (missing & (~has_rigid | loose)).any() or relabeled.any() or st.skipped >= min(config.max_skip_frames, config.max_skip_s / dt - 1e-6):
             solved = _launch(model, st, solver, cur, labeled, t_ns)
             st.skipped = 0
         else:

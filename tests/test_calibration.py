@@ -154,3 +154,25 @@ def test_detect_tpose_finds_nothing_in_empty_or_ghost_clouds():
     perf = perform(19, duration_s=4.5)
     walking = perf.recording.points_m[int(4.0 * 120)]
     assert detect_tpose(walking, np.ones(len(walking), bool)) == []
+
+
+def test_layout_residuals_tell_a_marker_that_slides_on_its_segment():
+    """Markers carried rigidly by their segment read little; one that slides 6 cm back and forth, cm."""
+    from scipy.spatial.transform import Rotation
+
+    from service.calibration import layout_residuals
+
+    rng = np.random.default_rng(2)
+    off = rng.normal(0.0, 0.06, (10, 3))
+    seg = np.zeros(10, int)
+    frames = []
+    for f in range(30):
+        R = Rotation.from_rotvec(rng.normal(0.0, 0.5, 3)).as_matrix()
+        o = off.copy()
+        o[9] += [0.06 * np.sin(f), 0.0, 0.0]
+        frames.append(o @ R.T + rng.normal(0.0, 1.0, 3))
+    hist = np.stack(frames)
+    hist[::4, 1] = np.nan  # gaps are fine
+    res = layout_residuals(hist, seg, off)
+    assert res[9] > 0.015 and res[:9].max() < 0.5 * res[9]
+    assert np.isnan(layout_residuals(hist[:, :2], seg[:2], off[:2])).all()  # fewer than 3 markers: unmeasured

@@ -279,6 +279,11 @@ def test_describe_shapes_and_save_load_round_trip(tmp_path):
     d2 = other.describe("Performer")
     for key in d:
         np.testing.assert_array_equal(np.asarray(d2[key]), np.asarray(d[key]), err_msg=key)
+    # the marker layouts the labels are checked against come back too
+    before, after = engine._subjects["Performer"].model, other._subjects["Performer"].model
+    assert before.layout_rms_m is not None
+    np.testing.assert_array_equal(after.layout_offsets_m, before.layout_offsets_m)
+    np.testing.assert_array_equal(after.layout_rms_m, before.layout_rms_m)
 
 
 def test_loaded_subject_resumes_tracking(tmp_path):
@@ -378,15 +383,16 @@ def test_send_time_stamps_with_stalls_and_bursts_track_like_capture_stamps():
     "pair",
     [
         ("RTOE", "RMT5"),
-        pytest.param(("LWRA", "LWRB"), marks=pytest.mark.xfail(strict=True, reason="known: the next fit twists the forearm to the crossed labels")),
+        ("LWRA", "LWRB"),
     ],
 )
 def test_two_labels_crossed_by_nnt_are_uncrossed(pair):
     """Two close markers on one segment tracked through crossed (the toe pair, the wrist pair: mirror
     images about their partners, so distances cannot tell): the skeleton puts each where the other is,
-    and the labels are uncrossed by the first fit after. Not yet for the wrist: the forearm's markers lie
-    about its long axis, and a fit on the crossed labels turns it half a turn to match them, so the
-    skeleton then agrees with the swap (tennis serve, 135_02)."""
+    and the labels are uncrossed by the first fit after. The wrist pair lies about the forearm's long axis,
+    and a fit on the crossed labels turns the forearm half a turn to match them, so the skeleton then
+    agrees with the swap (tennis serve, 135_02): there the forearm's marker layout uncrosses them, and
+    the skeleton's word waits for a fit on the uncrossed labels."""
     seq = corrupt(perform(7, duration_s=5.0).recording, "L0", 7)
     engine = Engine(EngineConfig(tpose_auto=False))
     f_cross = seq.seed_frames + 120

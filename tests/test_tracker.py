@@ -177,6 +177,64 @@ def test_a_segment_the_fit_lost_is_found_around_its_joint():
     assert tracker._search_segments(model, st, points, truth == -2, labeled, cur, on_forearm) == {}
 
 
+def test_kabsch_rms_matches_a_kabsch_by_svd():
+    """The closed-form misfit equals the residual of scipy's best rotation, masked points left out."""
+    rng = np.random.default_rng(4)
+    A = rng.normal(0.0, 0.05, (30, 5, 3))
+    R = Rotation.random(30, random_state=5).as_matrix()
+    B = np.einsum("cij,cnj->cni", R, A) + rng.normal(0.0, 0.004, A.shape) + 1.0
+    B[:10] = rng.normal(0.0, 0.05, (10, 5, 3))  # unrelated clouds: large misfits, reflections possible
+    w = np.ones((30, 5), bool)
+    w[::3, 4] = False
+    want = []
+    for a, b, m in zip(A, B, w):
+        a, b = a[m] - a[m].mean(0), b[m] - b[m].mean(0)
+        rot = Rotation.align_vectors(b, a)[0]
+        want.append(np.sqrt(np.mean(np.sum((rot.apply(a) - b) ** 2, axis=1))))
+    np.testing.assert_allclose(tracker._kabsch_rms(A, B, w), want, atol=1e-9)
+
+
+def test_labels_permuted_within_a_segment_are_put_back_by_its_layout():
+    """Three forearm labels cycled among their points (a wrist triad after a fast pass) are put back in
+    the order the segment's calibrated layout says, once SHAPE_CONFIRM checks agree; correct labels are
+    left alone, and so is a model whose layout was never measured."""
+    from protocol.skeleton import SEGMENTS
+
+    perf = perform(3, duration_s=0.1)
+    m = len(perf.marker_names)
+    fore = np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
+    assert len(fore) >= 4
+    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
+                                 perf.joint_offsets_m, True, layout_offsets_m=perf.marker_offsets_m,
+                                 layout_rms_m=np.full(m, 0.002))
+    points = perf.recording.points_m[0]
+    assert np.isfinite(points).all()
+    st = tracker.new_state(model, points, t_ns(0))
+    st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
+    right = np.arange(m)
+    wrong = right.copy()
+    wrong[fore[1:4]] = right[fore[[2, 3, 1]]]  # the wrist pair and the finger marker, 8-11 cm apart
+
+    def check(point_index, model=model):
+        cur = points[point_index]
+        changed = tracker._relabel_by_shape(model, st, points, point_index, cur)
+        np.testing.assert_array_equal(cur, points[point_index])
+        return changed
+
+    idx = right.copy()
+    assert not check(idx).any() and (idx == right).all()
+    unmeasured = dataclasses.replace(model, layout_rms_m=None)
+    idx = wrong.copy()
+    for _ in range(tracker.SHAPE_CONFIRM + 1):
+        assert not check(idx, unmeasured).any()
+    assert (idx == wrong).all()
+    for _ in range(tracker.SHAPE_CONFIRM - 1):
+        assert not check(idx).any()
+    changed = check(idx)
+    assert (idx == right).all()
+    assert set(np.flatnonzero(changed)) == set(fore[1:4])
+
+
 def run_tracker(points_m: np.ndarray, seed_frames: int, shuffle_seed: int = 0, ghosts_m=None):
     """Seed, then step every later frame with the points shuffled; returns per frame the true marker each
     marker slot was given (-1 = none, -2 = a ghost)."""
