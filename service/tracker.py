@@ -688,17 +688,17 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
         if n_votes < SHAPE_CONFIRM:
             continue
         del st.shape_votes[int(ks[r])]
-        relabeled = point_index.copy()
-        relabeled[new_labels] = point_index[lab]
-        moved = lab[relabeled[lab] != point_index[lab]]
+        proposed = point_index.copy()
+        proposed[new_labels] = point_index[lab]
+        moved = lab[proposed[lab] != point_index[lab]]
         # the long-run partner distances must not object: they have taken a long-standing permutation in
         # (the target here) but refuse a fresh one (a layout near-symmetric under it, a skin-moved segment)
         z_now = distance_misfit(st, cur, labeled, moved)[moved]
-        z_new = distance_misfit(st, _gather(points, relabeled), labeled, moved)[moved]
+        z_new = distance_misfit(st, _gather(points, proposed), labeled, moved)[moved]
         z_now, z_new = z_now[np.isfinite(z_now)], z_new[np.isfinite(z_new)]
         if len(z_new) and np.median(z_new) > max(Z_SUSPECT, 2.0 * (np.median(z_now) if len(z_now) else 0.0)):
             continue
-        point_index[moved] = relabeled[moved]
+        point_index[moved] = proposed[moved]
         changed[moved] = True
     if changed.any():
         cur[changed] = _gather(points, point_index)[changed]
