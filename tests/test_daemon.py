@@ -280,18 +280,54 @@ def test_engine_exception_is_counted_not_fatal(tmp_path):
         assert status["rejected"] == {"engine_error": 1}
 
 
-def test_falling_behind_processes_the_newest_and_counts_drops(tmp_path):
-    """A slow engine (20 ms per frame) fed 40 frames at once: the daemon skips to the newest frame instead
-    of working through a backlog, every frame is accounted for, and the last frame is always processed."""
+def test_falling_behind_processes_evenly_spaced_frames_and_counts_drops(tmp_path):
+    """A slow engine (20 ms per frame, known from the frames before) fed 40 frames at once: the daemon
+    does not work through the whole backlog, every frame is accounted for, and the last frame is always
+    processed."""
     engine = FakeEngine(step_s=0.02)
     with running(Daemon(free_config(tmp_path), engine)) as d:
-        for n in range(40):
+        for n in range(2):
             d.send(frame(n))
-        status = d.wait_status(lambda s: s["frames_processed"] + s["frames_dropped"] == 40)
+            d.wait_status(lambda s: s["frames_processed"] == n + 1)
+        for n in range(2, 42):
+            d.send(frame(n))
+        status = d.wait_status(lambda s: s["frames_processed"] + s["frames_dropped"] == 42)
         assert status["frames_dropped"] > 0 and status["rejected"] == {}
         assert status["latency_ms"]["max"] >= status["latency_ms"]["p50"] > 0
     frames = [f.frame for f in engine.inputs]
-    assert frames == sorted(frames) and frames[-1] == 39 and len(frames) < 40
+    assert frames == sorted(frames) and frames[-1] == 41 and len(frames) < 42, frames
+
+
+def test_a_burst_is_thinned_to_evenly_spaced_frames_not_a_jump(tmp_path):
+    """A sender that stalled and then sent 48 frames at once, to a daemon whose frames take >= 20 ms: the
+    catch-up budget affords at most 12 of them, so evenly spaced ones are processed (every 4th or closer),
+    ending with the newest: the tracker sees the motion at a lower rate, not one jump of 48 frames."""
+    from service.daemon import CATCH_UP_BUDGET_S
+
+    gate = threading.Event()
+
+    class Gated(FakeEngine):  # holds frame 0 until the burst is queued behind it
+        def step(self, frame):
+            if frame.frame == 0:
+                gate.wait(TIMEOUT_S)
+            return super().step(frame)
+
+    engine = Gated(step_s=0.02)
+    assert CATCH_UP_BUDGET_S / engine.step_s <= 12.5
+    with running(Daemon(free_config(tmp_path), engine)) as d:
+        d.send(frame(0))
+        deadline = time.monotonic() + TIMEOUT_S
+        while not engine.inputs and time.monotonic() < deadline:  # status waits too: one thread
+            time.sleep(0.01)
+        for n in range(1, 49):
+            d.send(frame(n))
+        time.sleep(0.5)  # delivered over loopback into the daemon's queue
+        gate.set()
+        status = d.wait_status(lambda s: s["frames_processed"] + s["frames_dropped"] == 49)
+    frames = [f.frame for f in engine.inputs]
+    assert frames[0] == 0 and frames[-1] == 48 and len(frames) <= 13, frames
+    assert max(np.diff(frames)) <= 4, frames
+    assert status["frames_dropped"] == 49 - len(frames) > 0
 
 
 def test_a_short_backlog_is_processed_in_order(tmp_path):

@@ -5,7 +5,10 @@ Tests reading ../shared/data fail when CI=true and the file is missing, and skip
 """
 
 import json
+import re
+import signal
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -45,28 +48,49 @@ def daemon(tmp_path_factory):
     assert children.procs[0][1].returncode == 0, log.read_text()[-2000:]
 
 
-def _reset(eps):
+def _request(eps, command: str) -> dict:
     context = zmq.Context()
     try:
-        reply = control_request(context, eps.control, {"cmd": "reset"}, timeout_s=10.0)
+        reply = control_request(context, eps.control, {"cmd": command}, timeout_s=10.0)
     finally:
         context.destroy(linger=0)
     assert reply is not None and reply["ok"], reply
+    return reply
 
 
-def _session(daemon, tmp_path, name, *replay_args):
-    """Record while replaying once; returns the recorder's stdout."""
+def _session(daemon, tmp_path, name, *replay_args, freeze: tuple[int, float] | None = None) -> tuple[str, str]:
+    """Record while replaying once; returns what the recorder and the replay printed, and the daemon's
+    status after (frames dropped, latency: the first things to read when a test below fails).
+
+    freeze=(frames, seconds): once the daemon has processed that many frames, the replay is stopped
+    (SIGSTOP) for that long, as a loaded machine or a stalled capture PC does; it then sends the frames it
+    owes in a burst."""
     children, eps, _ = daemon
-    _reset(eps)
+    _request(eps, "reset")
+    before = _request(eps, "status")["frames_processed"]  # the daemon's counters run over the module
     recorder = start_recorder(children, eps, tmp_path / name, tmp_path / f"{name}_recorder.log")
-    replay = subprocess.run(
+    replay = subprocess.Popen(
         module_command("clients.replay", *replay_args, "--endpoint", eps.frames, "--control", eps.control,
                        "--quiet", "--truth-out", tmp_path / f"{name}_truth.npz"),
-        cwd=REPO, capture_output=True, text=True, timeout=600,
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
-    assert replay.returncode == 0, replay.stderr
-    assert replay.stdout.startswith("mocap-replay: sent")
-    return finish_recorder(recorder)
+    try:
+        if freeze is not None:
+            deadline = time.monotonic() + 120
+            while _request(eps, "status")["frames_processed"] < before + freeze[0] and time.monotonic() < deadline:
+                time.sleep(0.02)
+            replay.send_signal(signal.SIGSTOP)
+            time.sleep(freeze[1])
+            replay.send_signal(signal.SIGCONT)
+        out, err = replay.communicate(timeout=600)
+    finally:
+        if replay.poll() is None:
+            replay.kill()
+    assert replay.returncode == 0, err
+    assert out.startswith("mocap-replay: sent")
+    recorded = finish_recorder(recorder)
+    status = _request(eps, "status")
+    return recorded, f"{out.strip()}; daemon status {status}"
 
 
 def _answered_accuracy(result, given) -> tuple[float, float]:
@@ -83,7 +107,7 @@ def _answered_accuracy(result, given) -> tuple[float, float]:
 def test_real_recording_seeded(daemon, tmp_path):
     """cmu/07_01 (walking, 41 markers), labels in the first 2 s, played at its own rate (2.6 s)."""
     path = data_path("cmu/07_01.c3d")
-    stdout = _session(daemon, tmp_path, "walk", path, "--seed-seconds", "2")
+    stdout, run = _session(daemon, tmp_path, "walk", path, "--seed-seconds", "2")
     assert "recorded" in stdout
 
     original = read_c3d(path)
@@ -108,7 +132,7 @@ def test_real_recording_seeded(daemon, tmp_path):
     accuracy, answered = _answered_accuracy(result, given)
     # A busy shared machine may drop frames to keep up (answered < 1): the labels of the frames it did
     # answer are what this checks.
-    assert answered > 0.25 and accuracy > 0.9, (accuracy, answered)
+    assert answered > 0.25 and accuracy > 0.9, (accuracy, answered, run)
     assert result.precision > 0.97
 
     motion = read_bvh(tmp_path / "walk_liu.bvh")
@@ -120,8 +144,8 @@ def test_real_recording_seeded(daemon, tmp_path):
 
 def test_synthetic_performer_seeded(daemon, tmp_path):
     """The built-in performer at L2 (occlusions, noise, ghosts), seeded: no data needed."""
-    _session(daemon, tmp_path, "synth", "--duration", "6", "--seed", "3", "--seed-seconds", "2",
-             "--stamp-send-time")
+    _, run = _session(daemon, tmp_path, "synth", "--duration", "6", "--seed", "3", "--seed-seconds", "2",
+                      "--stamp-send-time")
     seq, labeled = load_truth(tmp_path / "synth_truth.npz")
     assert seq.level == "L2" and labeled == 240
     labels = load_labels(tmp_path / "synth_labels.npz")
@@ -131,10 +155,10 @@ def test_synthetic_performer_seeded(daemon, tmp_path):
     accuracy, answered = _answered_accuracy(result, given)
     # Most labels given are right and most markers are labeled; the engine's own tests and the
     # benchmarks hold it to the paper's figures, this checks the pipeline carries its answers intact.
-    assert answered > 0.5 and accuracy > 0.5, (accuracy, answered)
+    assert answered > 0.5 and accuracy > 0.5, (accuracy, answered, run)
     # Pipeline check on a shared, loaded machine (the daemon may drop frames under load); the labeling
     # quality itself is held to its figures by test_engine.py and measured in BENCHMARK.md.
-    assert result.precision > 0.85 and result.ghost_rate < 0.25, (result.precision, result.ghost_rate)
+    assert result.precision > 0.85 and result.ghost_rate < 0.25, (result.precision, result.ghost_rate, run)
     latency = latencies_ms(labels)  # send time stamped: receipt - send is end to end, and positive
     assert len(latency) and latency.min() > 0
 
@@ -147,17 +171,35 @@ def test_synthetic_performer_seeded(daemon, tmp_path):
 
 def test_synthetic_performer_found_from_its_t_pose(daemon, tmp_path):
     """Seedless: nothing is given; the engine must find the performer standing in a T-pose."""
-    _session(daemon, tmp_path, "tpose", "--duration", "6", "--seed", "4")
+    _, run = _session(daemon, tmp_path, "tpose", "--duration", "6", "--seed", "4")
     seq, labeled = load_truth(tmp_path / "tpose_truth.npz")
     assert labeled == 0
     labels = load_labels(tmp_path / "tpose_labels.npz") if (tmp_path / "tpose_labels.npz").is_file() else {}
-    assert labels, "no subject was created from the T-pose"
+    assert labels, f"no subject was created from the T-pose ({run})"
     given = given_labels(labels, seq)
     result = score(seq, given, "tpose", int(seq.rate_hz))  # from 1 s: the subject exists after 0.5 s
     accuracy, answered = _answered_accuracy(result, given)
     # Frames a loaded machine made the daemon drop are no labeling error (see _answered_accuracy); the
     # engine's own tests hold the T-pose start to >= 95 % in process.
-    assert answered > 0.5 and accuracy > 0.8 and result.precision > 0.9, (accuracy, answered, result.precision)
+    assert answered > 0.5 and accuracy > 0.8 and result.precision > 0.9, (accuracy, answered, result.precision, run)
+
+
+def test_a_replay_that_stalls_then_bursts_is_tracked_through(daemon, tmp_path):
+    """The replay is frozen for 2 s mid-session, then sends the ~240 frames it owes at once (what a CI
+    machine's hiccup did to the T-pose test above). The daemon works through the burst, thinned if it
+    must, so the tracker follows the motion: the frames after it are answered and labeled. Before the
+    catch-up was thinned rather than skipped to the newest frame, this lost the performer for good
+    (answered 40 %, accuracy 45 %)."""
+    _, run = _session(daemon, tmp_path, "stall", "--duration", "6", "--seed", "4", freeze=(200, 2.0))
+    late_ms = float(re.search(r"max ([0-9.]+) ms", run).group(1))
+    assert late_ms > 1500, run  # the freeze happened mid-stream
+    seq, _ = load_truth(tmp_path / "stall_truth.npz")
+    labels = load_labels(tmp_path / "stall_labels.npz") if (tmp_path / "stall_labels.npz").is_file() else {}
+    given = given_labels(labels, seq)
+    result = score(seq, given, "tpose", int(seq.rate_hz))
+    accuracy, answered = _answered_accuracy(result, given)
+    last_second = [given[f] is not None for f in range(seq.n_frames - int(seq.rate_hz), seq.n_frames)]
+    assert np.mean(last_second) > 0.9 and answered > 0.5 and accuracy > 0.8, (accuracy, answered, run)
 
 
 def test_demo_runs(tmp_path):
