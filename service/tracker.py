@@ -43,7 +43,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from protocol.skeleton import N_SEGMENTS
+from protocol.skeleton import N_SEGMENTS, PARENTS
 from service.calibration import rigid_motion, world_transforms
 from service.config import EngineConfig
 
@@ -64,12 +64,29 @@ MAX_HIDDEN_GATE_FACTOR = 2.0  # ... up to this many times reacquire_gate_m
 RELOCATE_RADIUS_M = 2.5  # a lost subject is looked for among the unclaimed points this far (horizontally) ...
 RELOCATE_MIN_SHARE = 0.3  # ... and found when this share of its markers has a point after registration
 RELOCATE_GATE_FACTOR = 0.5  # ... within this times reacquire_gate_m (the rigid parts; limbs moved meanwhile)
+#: With a skeleton, when the whole cloud does not register, the trunk's markers alone are (pelvis, abdomen,
+#: torso, head: they keep their layout while the limbs move), and the subject is found when this share of
+#: them has a point within reacquire_gate_m. Measured on the synthetic performer lost for 1.25 s mid-walk
+#: (seed 3): the trunk was found on every frame checked over the next 4 s (10-15 of its 15 markers, median
+#: error 1-2 cm), the whole cloud on 1 of 4 (its limbs had moved: 6 of 41 markers within the gate at the
+#: true shift).
+RELOCATE_TRUNK_SHARE = 0.5
+TRUNK_SEGMENTS = (0, 1, 2, 3)  # indices in protocol.skeleton.SEGMENTS
+#: A pause in a subject's frames longer than this [s] (a stream paused and resumed, a sender that stalled,
+#: a daemon thinning a long backlog never leaves one this long) leaves every track stale: the subject moved
+#: on meanwhile, and chaining its labels to whatever points lie near where it was labels them wrong for
+#: good. It is looked for as a lost subject instead (`_relocate`).
+LOST_AFTER_GAP_S = 0.25
 SEGMENT_DISTANCE_TOL_M = 0.015  # markers re-found together on an unobserved segment keep the model's distances
 SEARCH_LOST_FRAMES = 3  # a marker unlabeled this many frames on a segment the fit cannot place is searched for
 SEARCH_EVERY_FRAMES = 3  # ... on every 3rd frame, around its segment's joint (`_search_segments`)
 SEARCH_JOINT_TOL_M = 0.03  # a point this close to a marker's distance from its joint may be it ...
 SEARCH_PAIR_TOL_M = 0.012  # ... two points this close to the model distance between two of its markers ...
 SEARCH_INLIER_M = 0.012  # ... and a marker with a point this close to where the registered segment puts it
+#: A segment whose joint is misplaced too (its parent segment moved unseen: a whole arm swung while the
+#: subject was lost) is looked for by its own layout, as a free rigid body whose joint lies this close to
+#: its bone's length from the grandparent joint (`_search_free_segment`).
+SEARCH_BONE_TOL_M = 0.05
 SHAPE_EVERY_FRAMES = 4  # segment layouts are checked on every this many frames
 SHAPE_LAYOUT_TOL_M = 0.02  # only markers that kept their offset in their segment this well [m] take part ...
 SHAPE_MIN_RMS_M = 0.012  # a segment whose labels fit its calibrated marker layout this well is not re-checked
@@ -442,13 +459,16 @@ def _unsure_on_unseen_segment(model: SubjectModel, labeled: np.ndarray, rows: np
     return hold
 
 
-def _relocate(st: TrackState, points: np.ndarray, cand: np.ndarray, gate_m: float) -> np.ndarray | None:
+def _relocate(st: TrackState, points: np.ndarray, cand: np.ndarray, gate_m: float, share: float = RELOCATE_MIN_SHARE,
+              rows: np.ndarray | None = None) -> np.ndarray | None:
     """Where a lost subject's markers are now (M, 3; NaN = unknown), or None: its last known marker cloud
-    registered onto the unclaimed points within RELOCATE_RADIUS_M of it by rigid ICP (from four headings,
-    as it may come back turned), accepted when at least RELOCATE_MIN_SHARE of its markers (and 4) then
-    have a point within `gate_m`. Limbs that moved while it was away fit loosely; the torso and head
-    carry the registration, and the skeleton fit finds the rest. Runs only while a subject is lost."""
-    known = np.flatnonzero(st.ever_seen & np.isfinite(st.pos_m[:, 0]))
+    (of markers `rows`, default all) registered onto the unclaimed points within RELOCATE_RADIUS_M of it
+    by rigid ICP (from four headings, as it may come back turned; at its height: people walk), accepted
+    when at least `share` of those markers (and 4) then have a point within `gate_m`. Limbs that moved
+    while it was away fit loosely; the torso and head carry the registration, and the skeleton fit finds
+    the rest. Runs only while a subject is lost."""
+    usable = st.ever_seen & np.isfinite(st.pos_m[:, 0])
+    known = np.flatnonzero(usable if rows is None else usable & rows)
     pts = points[cand]
     if len(known) < 4 or len(pts) < 4:
         return None
@@ -458,9 +478,9 @@ def _relocate(st: TrackState, points: np.ndarray, cand: np.ndarray, gate_m: floa
         near = pts[_norm(pts[:, :2] - center[:2]) < RELOCATE_RADIUS_M]
         if len(near) < 4:
             return None
-        center = near.mean(0)
+        center[:2] = near[:, :2].mean(0)
     tree = cKDTree(near)
-    need = max(4, int(np.ceil(RELOCATE_MIN_SHARE * len(known))))
+    need = max(4, int(np.ceil(share * len(known))))
     best, best_n = None, need - 1
     c_src = src.mean(0)
     for yaw in np.arange(4) * (np.pi / 2):
@@ -542,17 +562,72 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
             if len(set(assignment.values())) < len(assignment):
                 continue
             scored.append((len(assignment), float(np.sqrt(np.mean(res**2))), assignment))
-        if not scored:
-            continue
-        scored.sort(key=lambda x: (-x[0], x[1]))
-        n, r, assignment = scored[0]
-        if n < 3:
-            continue
-        if any(n2 == n and a2 != assignment and r2 < 1.5 * r + 0.003 for n2, r2, a2 in scored[1:]):
-            continue  # another assignment fits as well: ambiguous
-        found.update(assignment)
-        pool = pool[~np.isin(pool, list(assignment.values()))]
+        margin = 0
+        if not scored or max(n for n, _, _ in scored) < 3:
+            scored = _search_free_segment(model, pw, points, pool, los, k) if len(lab) == 0 else []
+            margin = 1  # no joint to pin it: a rival placing one marker fewer makes it ambiguous too
+        assignment = _unambiguous(scored, margin)
+        if assignment:
+            found.update(assignment)
+            pool = pool[~np.isin(pool, list(assignment.values()))]
     return found
+
+
+def _unambiguous(scored: list, margin: int = 0) -> dict[int, int] | None:
+    """The best of scored (n markers placed, RMS, assignment) hypotheses, if it places 3 markers or more
+    and no other assignment places as many (less `margin`) about as well."""
+    if not scored:
+        return None
+    scored.sort(key=lambda x: (-x[0], x[1]))
+    n, r, assignment = scored[0]
+    if n < 3 or any(n2 >= n - margin and a2 != assignment and r2 < 1.5 * r + 0.003 for n2, r2, a2 in scored[1:]):
+        return None
+    return assignment
+
+
+def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray, pool: np.ndarray,
+                         los: np.ndarray, k: int) -> list:
+    """Hypotheses (n placed, RMS, {marker: point}) for segment k, none of whose markers `los` is labeled,
+    when its joint cannot anchor the search (its parent moved unseen too): its markers' layout is matched
+    as a free rigid body. Three of its markers (the widest triangle) are matched to unclaimed points at
+    the same mutual distances, within reach of the grandparent joint (the shoulder for a forearm, held by
+    the trunk); the rigid motion must put the segment's joint at its bone's length from there; it then
+    places the other markers. Only markers that keep their layout on the segment take part."""
+    parent = PARENTS[k]
+    if model.layout_rms_m is None or len(model.layout_rms_m) != model.n_markers:
+        return []  # layouts unmeasured (a calibration saved before they were kept)
+    los = los[model.layout_rms_m[los] < SHAPE_LAYOUT_TOL_M]  # a marker that slides (a finger) misplaces it
+    if parent < 0 or len(los) < 3:
+        return []
+    off = model.marker_offsets_m
+    anchor, bone = pw[parent], _norm(model.joint_offsets_m[k])
+    near = pool[_norm(points[pool] - anchor) < bone + _norm(off[los]).max() + SEARCH_JOINT_TOL_M]
+    if len(near) < 3:
+        return []
+    def area(c):
+        return _norm(np.cross(off[c[1]] - off[c[0]], off[c[2]] - off[c[0]]))
+
+    A = off[list(max(itertools.combinations(los, 3), key=area))]
+    P = points[near]
+    D = _norm(P[:, None] - P[None])
+    ab, ac, bc = (np.abs(D - _norm(A[i] - A[j])) < SEARCH_PAIR_TOL_M for i, j in ((0, 1), (0, 2), (1, 2)))
+    scored = []
+    for a, b in zip(*np.nonzero(ab)):
+        for c in np.flatnonzero(ac[a] & bc[b]):
+            if c == a or c == b:
+                continue
+            R, t = rigid_motion(A, P[[a, b, c]])
+            res = _norm(A @ R.T + t - P[[a, b, c]])
+            if res.max() > 2 * SEARCH_INLIER_M or abs(_norm(t - anchor) - bone) > SEARCH_BONE_TOL_M:
+                continue
+            d = _norm((off[los] @ R.T + t)[:, None] - P[None])
+            best = np.argmin(d, axis=1)
+            ok = d[np.arange(len(los)), best] < SEARCH_INLIER_M
+            assignment = {int(los[r]): int(near[best[r]]) for r in np.flatnonzero(ok)}
+            if len(set(assignment.values())) < len(assignment):
+                continue
+            scored.append((len(assignment), float(np.sqrt(np.mean(res**2))), assignment))
+    return scored
 
 
 def _kabsch_rms(A: np.ndarray, B: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -754,6 +829,8 @@ def step(
     dt = min(max((t_ns - st.last_t_ns) * 1e-9, 1e-4), 0.5) if st.frames or st.last_t_ns else 1.0 / 120
     point_index = np.full(m, -1)
     taken = ~free.copy()
+    if st.last_t_ns and (t_ns - st.last_t_ns) * 1e-9 > LOST_AFTER_GAP_S:
+        st.labeled[:] = False
 
     # 1. NNT: markers labeled last frame, predicted from their velocity and acceleration.
     pred_track = st.pos_m + st.vel_m_s * dt
@@ -845,6 +922,10 @@ def step(
         # subject's last known marker cloud in the unclaimed points nearby, registered rigidly (it came
         # back walking, elsewhere, turned); failing that, for every marker where it was last, coasting.
         found = _relocate(st, points, ~taken, RELOCATE_GATE_FACTOR * config.reacquire_gate_m)
+        trunk = np.isin(model.marker_segment, TRUNK_SEGMENTS)
+        if found is None and model.has_skeleton and (trunk & st.ever_seen).sum() >= 4:
+            # the limbs moved too much to carry the whole cloud: the trunk alone
+            found = _relocate(st, points, ~taken, config.reacquire_gate_m, RELOCATE_TRUNK_SHARE, trunk)
         if found is not None:  # only what the registration places well: the fit then finds the limbs
             # (from their pose before the subject left: their gates start narrow again, not widened by
             # the time away)
@@ -877,6 +958,7 @@ def step(
 
     if len(rows):
         labeled, cur = accept(rows, cols, segment_rule=model.has_skeleton)
+    searched = np.zeros(m, bool)  # found where the fit does not look: the fit's word on them is void
     # Markers the fit cannot place, unlabeled a few frames though in view: their segment is looked for
     # around its joint (a hand flicked while hidden is found where the fit never looks).
     if model.has_skeleton and st.skel_pred_m is not None and st.frames % SEARCH_EVERY_FRAMES == 0:
@@ -885,6 +967,7 @@ def step(
             found = _search_segments(model, st, points, ~taken, labeled, cur, lost)
             if found:
                 labeled, cur = accept(np.array(list(found)), np.array(list(found.values())), segment_rule=False)
+                searched[list(found)] = labeled[list(found)]
 
     # Labels permuted within a segment (a wrist triad after a fast pass or a re-acquisition) are put back
     # in the order the segment's marker layout says.
@@ -901,7 +984,7 @@ def step(
     if skel_pred is not None and residual < 0.5 * config.reject_residual_m:
         # the model's word counts only where no rigid partners can speak for a marker
         err = _norm(np.where(labeled[:, None], cur - skel_pred, 0.0))
-        bad = labeled & check & ~has_rigid & (err > config.reject_residual_m) & ~relabeled
+        bad = labeled & check & ~has_rigid & (err > config.reject_residual_m) & ~relabeled & ~searched
         if bad.any():
             point_index[bad] = -1
             labeled = point_index >= 0

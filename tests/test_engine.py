@@ -117,6 +117,24 @@ def test_dropped_frames_do_not_break_tracking():
     assert s.accuracy >= 0.995 and s.precision >= 0.999, s.worst_markers()
 
 
+def test_a_stream_paused_mid_walk_finds_its_subject_again():
+    """The frames stop for 1.25 s mid-walk and resume (a capture PC paused, a sender stalled): every track
+    is stale, so the subject is looked for as a lost one: its trunk by its layout, its arms, which swung
+    meanwhile, each by its own layout. Measured: 84 % and 88 % in the two seconds after the pause (the
+    right foot and shank come last: their rigid partners still place them stale), 99.3 % and 100 % in the
+    next two, 4 wrong labels in all. (Before, stale tracks chained to the nearest points: nothing right
+    after the pause, ever.)"""
+    seq = corrupt(perform(3, duration_s=8.0).recording, "L2", 3)
+    paused = range(300, 450)
+    points = [None if f in paused else p for f, p in enumerate(seq.points_m)]
+    truth = [None if f in paused else t for f, t in enumerate(seq.truth)]
+    holey = CorruptedSequence(points, truth, seq.marker_names, seq.rate_hz)
+    s = score(holey, run(holey, Engine()), "seeded", seq.seed_frames)
+    settled = s.status[paused.stop + int(2 * seq.rate_hz):]
+    assert np.mean(settled[settled != 0] == 1) >= 0.98
+    assert s.n_wrong <= 0.001 * s.n_true_points, s.worst_markers()
+
+
 @pytest.mark.parametrize("marker_set", ["cmu41", "gt53"])
 def test_automatic_tpose_subject(marker_set):
     """No labels at all: a subject appears within 1 s of a T-pose and labels everything after.

@@ -177,6 +177,56 @@ def test_a_segment_the_fit_lost_is_found_around_its_joint():
     assert tracker._search_segments(model, st, points, truth == -2, labeled, cur, on_forearm) == {}
 
 
+def test_a_forearm_whose_upper_arm_swung_too_is_found_by_its_layout():
+    """The whole arm swung while unlabeled (70 degrees at the shoulder, 60 at the elbow): the fit holds
+    the elbow where it was, so no search around it can work. The forearm's markers are found by their
+    layout, with the elbow at the upper arm's length from the shoulder; not with their layouts unmeasured,
+    and not among points whose layout matches but that lie out of the arm's reach."""
+    import dataclasses
+
+    from protocol.skeleton import SEGMENTS
+    from service.calibration import world_transforms
+
+    perf = perform(3, duration_s=0.1)
+    m = len(perf.marker_names)
+    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
+                                 perf.joint_offsets_m, True, layout_offsets_m=perf.marker_offsets_m,
+                                 layout_rms_m=np.full(m, 0.002))
+    rng = np.random.default_rng(4)
+    R_old = Rotation.from_rotvec(rng.normal(0.0, 0.2, (14, 3))).as_matrix()
+    t = np.array([0.3, -0.2, 0.95])
+    upper, fore = SEGMENTS.index("r_upperarm"), SEGMENTS.index("r_forearm")
+    R_new = R_old.copy()
+    R_new[upper] = Rotation.from_euler("x", 70, degrees=True).as_matrix() @ R_old[upper]
+    R_new[fore] = Rotation.from_euler("y", 60, degrees=True).as_matrix() @ R_old[fore]
+
+    def markers(R, root=t):
+        Rw, pw = world_transforms(root, R, perf.joint_offsets_m)
+        return np.einsum("mij,mj->mi", Rw[perf.marker_segment], perf.marker_offsets_m) + pw[perf.marker_segment]
+
+    old, now = markers(R_old), markers(R_new)
+    arm = np.isin(perf.marker_segment, [upper, fore])
+    on_forearm = perf.marker_segment == fore
+    assert on_forearm.sum() >= 3 and np.linalg.norm(now - old, axis=1)[on_forearm].min() > 0.1
+    st = tracker.new_state(model, old, t_ns(0))
+    st.t_root_m, st.R_parent_segment = t, R_old
+    labeled = ~arm
+    cur = np.where(labeled[:, None], now, np.nan)
+    ghosts = now[arm] + rng.normal(0.0, 0.05, (arm.sum(), 3))
+    points = np.concatenate([now, ghosts])
+    free = np.concatenate([arm, np.ones(len(ghosts), bool)])
+
+    found = tracker._search_segments(model, st, points, free, labeled, cur, arm)
+    assert {i: p for i, p in found.items() if on_forearm[i]} == {int(i): int(i) for i in np.flatnonzero(on_forearm)}
+    assert all(p == i for i, p in found.items())
+    unmeasured = dataclasses.replace(model, layout_rms_m=None)
+    assert not any(on_forearm[i] for i in tracker._search_segments(unmeasured, st, points, free, labeled, cur, arm))
+    away = markers(R_new, t + [0.0, 1.5, 0.0])  # the same arm 1.5 m to the side: out of this one's reach
+    far = np.concatenate([now[~arm], away[arm]])
+    far_free = np.concatenate([np.zeros((~arm).sum(), bool), np.ones(arm.sum(), bool)])
+    assert tracker._search_segments(model, st, far, far_free, labeled, cur, arm) == {}
+
+
 def test_kabsch_rms_matches_a_kabsch_by_svd():
     """The closed-form misfit equals the residual of scipy's best rotation, masked points left out."""
     rng = np.random.default_rng(4)
