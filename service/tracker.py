@@ -562,25 +562,28 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
             if len(set(assignment.values())) < len(assignment):
                 continue
             scored.append((len(assignment), float(np.sqrt(np.mean(res**2))), assignment))
-        margin = 0
+        margin, least = 0, 3
         if not scored or max(n for n, _, _ in scored) < 3:
             scored = _search_free_segment(model, pw, points, pool, los, k) if len(lab) == 0 else []
-            margin = 1  # no joint to pin it: a rival placing one marker fewer makes it ambiguous too
-        assignment = _unambiguous(scored, margin)
+            # no joint to pin it: a rival placing one marker fewer makes it ambiguous too, and three
+            # markers alone are only the triangle matched (a foot's three were once matched to two of
+            # them and the shank's marker: HDM05 at L3, T-pose mode)
+            margin, least = 1, 4
+        assignment = _unambiguous(scored, margin, least)
         if assignment:
             found.update(assignment)
             pool = pool[~np.isin(pool, list(assignment.values()))]
     return found
 
 
-def _unambiguous(scored: list, margin: int = 0) -> dict[int, int] | None:
-    """The best of scored (n markers placed, RMS, assignment) hypotheses, if it places 3 markers or more
-    and no other assignment places as many (less `margin`) about as well."""
+def _unambiguous(scored: list, margin: int = 0, least: int = 3) -> dict[int, int] | None:
+    """The best of scored (n markers placed, RMS, assignment) hypotheses, if it places `least` markers or
+    more and no other assignment places as many (less `margin`) about as well."""
     if not scored:
         return None
     scored.sort(key=lambda x: (-x[0], x[1]))
     n, r, assignment = scored[0]
-    if n < 3 or any(n2 >= n - margin and a2 != assignment and r2 < 1.5 * r + 0.003 for n2, r2, a2 in scored[1:]):
+    if n < least or any(n2 >= n - margin and a2 != assignment and r2 < 1.5 * r + 0.003 for n2, r2, a2 in scored[1:]):
         return None
     return assignment
 
@@ -592,12 +595,13 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
     as a free rigid body. Three of its markers (the widest triangle) are matched to unclaimed points at
     the same mutual distances, within reach of the grandparent joint (the shoulder for a forearm, held by
     the trunk); the rigid motion must put the segment's joint at its bone's length from there; it then
-    places the other markers. Only markers that keep their layout on the segment take part."""
+    places the other markers. Only markers that keep their layout on the segment take part, and only on
+    segments with four of them or more (one beyond the triangle to confirm it)."""
     parent = PARENTS[k]
     if model.layout_rms_m is None or len(model.layout_rms_m) != model.n_markers:
         return []  # layouts unmeasured (a calibration saved before they were kept)
     los = los[model.layout_rms_m[los] < SHAPE_LAYOUT_TOL_M]  # a marker that slides (a finger) misplaces it
-    if parent < 0 or len(los) < 3:
+    if parent < 0 or len(los) < 4:
         return []
     off = model.marker_offsets_m
     anchor, bone = pw[parent], _norm(model.joint_offsets_m[k])
