@@ -63,8 +63,10 @@ RESTART_AFTER_FRAMES = 8
 #: answered; with 4 (the first setting), the 30-50 ms stalls this shared 2-core machine shows left ~0.5 %
 #: of frames unanswered at 120 Hz.
 MAX_BACKLOG_FRAMES = 12
-#: Processing time [s] a backlog may take before it is thinned (see the module docstring): a 0.5 s burst
-#: at 120 Hz and ~2 ms per frame is still worked through whole; a 3 s one keeps every 3rd frame.
+#: Processing time [s] a backlog may take before it is thinned (see the module docstring). A loop turn
+#: drains at most `max_queue_frames` (64) frames, so at ~2 ms per frame (one subject) a burst is worked
+#: through whole, 64 frames a turn (a 2.9 s stall of the sender: nothing dropped, each late frame answered
+#: within 0.22 s of its arrival); at ~6 ms (three subjects) every 2nd frame of it is processed.
 CATCH_UP_BUDGET_S = 0.25
 #: Recent frames whose processing times give the time per frame of a catch-up (their median: one slow
 #: frame, a calibration applied, does not make the daemon thin the frames it delayed).

@@ -834,7 +834,7 @@ def step(
     point_index = np.full(m, -1)
     taken = ~free.copy()
     if st.last_t_ns and (t_ns - st.last_t_ns) * 1e-9 > LOST_AFTER_GAP_S:
-        st.labeled[:] = False
+        st.labeled[:] = False  # the frames paused: no track is current, the subject is looked for (step 4)
 
     # 1. NNT: markers labeled last frame, predicted from their velocity and acceleration.
     pred_track = st.pos_m + st.vel_m_s * dt
