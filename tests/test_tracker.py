@@ -137,33 +137,46 @@ def test_markers_of_an_unobserved_segment_are_taken_together_at_the_model_distan
     assert not hold([3], labeled=np.array([1, 1, 1, 0, 0], bool)).any()  # the segment is observed
 
 
+def _turned_unseen(rng, turns: dict, measured_layouts: bool = False):
+    """The synthetic performer (seed 3) at a random pose, tracked with its skeleton there, and the same
+    pose after `turns` ({segment: (axis, degrees)}) turned those segments at their joints unseen.
+    Returns (perf, model, state, markers before (M, 3), markers after (M, 3), after(root) the turned pose
+    with its root moved to `root`)."""
+    from protocol.skeleton import SEGMENTS
+    from service.calibration import world_transforms
+
+    perf = perform(3, duration_s=0.1)
+    layout = dict(layout_offsets_m=perf.marker_offsets_m, layout_rms_m=np.full(len(perf.marker_names), 0.002))
+    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
+                                 perf.joint_offsets_m, True, **(layout if measured_layouts else {}))
+    R_old = Rotation.from_rotvec(rng.normal(0.0, 0.2, (14, 3))).as_matrix()
+    t = np.array([0.3, -0.2, 0.95])
+    R_new = R_old.copy()
+    for name, (axis, degrees) in turns.items():
+        k = SEGMENTS.index(name)
+        R_new[k] = Rotation.from_euler(axis, degrees, degrees=True).as_matrix() @ R_old[k]
+
+    def markers(R, root=t):
+        Rw, pw = world_transforms(root, R, perf.joint_offsets_m)
+        return np.einsum("mij,mj->mi", Rw[perf.marker_segment], perf.marker_offsets_m) + pw[perf.marker_segment]
+
+    old = markers(R_old)
+    st = tracker.new_state(model, old, t_ns(0))
+    st.t_root_m, st.R_parent_segment = t, R_old
+    return perf, model, st, old, markers(R_new), lambda root: markers(R_new, root)
+
+
 def test_a_segment_the_fit_lost_is_found_around_its_joint():
     """A forearm turned 80 degrees at the elbow while its markers went unlabeled: the fit (which had no
     word on it) still holds it where it was, its wrist 12 cm from its markers. Registered around the
     elbow, every forearm marker gets its own point, not a ghost beside it; with the forearm's points gone,
     nothing is found."""
     from protocol.skeleton import SEGMENTS
-    from service.calibration import world_transforms
 
-    perf = perform(3, duration_s=0.1)
-    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
-                                 perf.joint_offsets_m, True)
     rng = np.random.default_rng(3)
-    R_old = Rotation.from_rotvec(rng.normal(0.0, 0.2, (14, 3))).as_matrix()
-    t = np.array([0.3, -0.2, 0.95])
-    R_new = R_old.copy()
-    fore = SEGMENTS.index("r_forearm")
-    R_new[fore] = Rotation.from_euler("y", 80, degrees=True).as_matrix() @ R_old[fore]
-
-    def markers(R):
-        Rw, pw = world_transforms(t, R, perf.joint_offsets_m)
-        return np.einsum("mij,mj->mi", Rw[perf.marker_segment], perf.marker_offsets_m) + pw[perf.marker_segment]
-
-    old, now = markers(R_old), markers(R_new)
-    on_forearm = perf.marker_segment == fore
+    perf, model, st, old, now, _ = _turned_unseen(rng, {"r_forearm": ("y", 80)})
+    on_forearm = perf.marker_segment == SEGMENTS.index("r_forearm")
     assert on_forearm.sum() >= 3 and np.linalg.norm(now - old, axis=1)[on_forearm].max() > 0.1
-    st = tracker.new_state(model, old, t_ns(0))
-    st.t_root_m, st.R_parent_segment = t, R_old
     labeled = ~on_forearm
     cur = np.where(labeled[:, None], now, np.nan)
     ghosts = now[on_forearm] + rng.normal(0.0, 0.04, (on_forearm.sum(), 3))
@@ -185,31 +198,13 @@ def test_a_forearm_whose_upper_arm_swung_too_is_found_by_its_layout():
     import dataclasses
 
     from protocol.skeleton import SEGMENTS
-    from service.calibration import world_transforms
 
-    perf = perform(3, duration_s=0.1)
-    m = len(perf.marker_names)
-    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
-                                 perf.joint_offsets_m, True, layout_offsets_m=perf.marker_offsets_m,
-                                 layout_rms_m=np.full(m, 0.002))
     rng = np.random.default_rng(4)
-    R_old = Rotation.from_rotvec(rng.normal(0.0, 0.2, (14, 3))).as_matrix()
-    t = np.array([0.3, -0.2, 0.95])
-    upper, fore = SEGMENTS.index("r_upperarm"), SEGMENTS.index("r_forearm")
-    R_new = R_old.copy()
-    R_new[upper] = Rotation.from_euler("x", 70, degrees=True).as_matrix() @ R_old[upper]
-    R_new[fore] = Rotation.from_euler("y", 60, degrees=True).as_matrix() @ R_old[fore]
-
-    def markers(R, root=t):
-        Rw, pw = world_transforms(root, R, perf.joint_offsets_m)
-        return np.einsum("mij,mj->mi", Rw[perf.marker_segment], perf.marker_offsets_m) + pw[perf.marker_segment]
-
-    old, now = markers(R_old), markers(R_new)
-    arm = np.isin(perf.marker_segment, [upper, fore])
-    on_forearm = perf.marker_segment == fore
+    turns = {"r_upperarm": ("x", 70), "r_forearm": ("y", 60)}
+    perf, model, st, old, now, turned_at = _turned_unseen(rng, turns, measured_layouts=True)
+    arm = np.isin(perf.marker_segment, [SEGMENTS.index(name) for name in turns])
+    on_forearm = perf.marker_segment == SEGMENTS.index("r_forearm")
     assert on_forearm.sum() >= 4 and np.linalg.norm(now - old, axis=1)[on_forearm].min() > 0.1
-    st = tracker.new_state(model, old, t_ns(0))
-    st.t_root_m, st.R_parent_segment = t, R_old
     labeled = ~arm
     cur = np.where(labeled[:, None], now, np.nan)
     ghosts = now[arm] + rng.normal(0.0, 0.05, (arm.sum(), 3))
@@ -221,7 +216,7 @@ def test_a_forearm_whose_upper_arm_swung_too_is_found_by_its_layout():
     assert all(p == i for i, p in found.items())
     unmeasured = dataclasses.replace(model, layout_rms_m=None)
     assert not any(on_forearm[i] for i in tracker._search_segments(unmeasured, st, points, free, labeled, cur, arm))
-    away = markers(R_new, t + [0.0, 1.5, 0.0])  # the same arm 1.5 m to the side: out of this one's reach
+    away = turned_at(st.t_root_m + [0.0, 1.5, 0.0])  # the same arm 1.5 m to the side: out of this one's reach
     far = np.concatenate([now[~arm], away[arm]])
     far_free = np.concatenate([np.zeros((~arm).sum(), bool), np.ones(arm.sum(), bool)])
     assert tracker._search_segments(model, st, far, far_free, labeled, cur, arm) == {}
