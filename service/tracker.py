@@ -553,11 +553,7 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
             res = _norm(A @ R.T + t - B)
             if res.max() > 2 * SEARCH_JOINT_TOL_M or res[1:].max() > 2 * SEARCH_INLIER_M:
                 continue
-            X = off[los] @ R.T + t
-            d = _norm(X[:, None] - points[near][None])
-            best = np.argmin(d, axis=1)
-            ok = d[np.arange(len(los)), best] < SEARCH_INLIER_M
-            assignment = {int(los[r]): int(near[best[r]]) for r in np.flatnonzero(ok)}
+            assignment = _placed(off, los, R, t, points, near)
             assignment.update({int(i): int(p) for i, p in h})
             if len(set(assignment.values())) < len(assignment):
                 continue
@@ -574,6 +570,16 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
             found.update(assignment)
             pool = pool[~np.isin(pool, list(assignment.values()))]
     return found
+
+
+def _placed(off: np.ndarray, los: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarray,
+            near: np.ndarray) -> dict[int, int]:
+    """{marker: point}: markers `los` (offsets `off`) that the segment's motion (R, t) puts within
+    SEARCH_INLIER_M of a point `near`, each on its nearest."""
+    d = _norm((off[los] @ R.T + t)[:, None] - points[near][None])
+    best = np.argmin(d, axis=1)
+    ok = d[np.arange(len(los)), best] < SEARCH_INLIER_M
+    return {int(los[r]): int(near[best[r]]) for r in np.flatnonzero(ok)}
 
 
 def _unambiguous(scored: list, margin: int = 0, least: int = 3) -> dict[int, int] | None:
@@ -608,6 +614,7 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
     near = pool[_norm(points[pool] - anchor) < bone + _norm(off[los]).max() + SEARCH_JOINT_TOL_M]
     if len(near) < 3:
         return []
+
     def area(c):
         return _norm(np.cross(off[c[1]] - off[c[0]], off[c[2]] - off[c[0]]))
 
@@ -624,10 +631,7 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
             res = _norm(A @ R.T + t - P[[a, b, c]])
             if res.max() > 2 * SEARCH_INLIER_M or abs(_norm(t - anchor) - bone) > SEARCH_BONE_TOL_M:
                 continue
-            d = _norm((off[los] @ R.T + t)[:, None] - P[None])
-            best = np.argmin(d, axis=1)
-            ok = d[np.arange(len(los)), best] < SEARCH_INLIER_M
-            assignment = {int(los[r]): int(near[best[r]]) for r in np.flatnonzero(ok)}
+            assignment = _placed(off, los, R, t, points, near)
             if len(set(assignment.values())) < len(assignment):
                 continue
             scored.append((len(assignment), float(np.sqrt(np.mean(res**2))), assignment))
