@@ -75,6 +75,19 @@ STEP_TIME_WINDOW = 64
 POLL_MAX_S = 0.1
 
 
+def catch_up(frames: list, step_s: float) -> list:
+    """The frames of one stream's backlog to process, given the recent processing time per frame: all of
+    them when that takes at most CATCH_UP_BUDGET_S (always up to MAX_BACKLOG_FRAMES); otherwise evenly
+    spaced ones, as many as that budget affords, ending with the newest."""
+    if len(frames) <= MAX_BACKLOG_FRAMES:
+        return frames
+    affordable = max(MAX_BACKLOG_FRAMES, int(CATCH_UP_BUDGET_S / max(step_s, 1e-3)))
+    if len(frames) <= affordable:
+        return frames
+    stride = math.ceil(len(frames) / affordable)
+    return frames[::-1][::stride][::-1]
+
+
 class DaemonError(RuntimeError):
     """The daemon cannot start (an endpoint cannot be bound); the message says which and why."""
 
@@ -294,7 +307,7 @@ class Daemon:
 
     def _serve_frames(self) -> None:
         """Drain the waiting frames; per stream, process the backlog in order, thinned if it is long
-        (`_catch_up`)."""
+        (`catch_up`)."""
         waiting: dict[str, list[tuple[int, pm.Frame]]] = collections.defaultdict(list)
         for _ in range(max(1, self.config.max_queue_frames)):  # bounded, so requests are served between
             try:
@@ -307,23 +320,10 @@ class Daemon:
             if frame is not None:
                 waiting[frame.stream].append((received_ns, frame))
         for frames in waiting.values():
-            kept = self._catch_up(frames)
+            kept = catch_up(frames, float(np.median(self._step_s)) if self._step_s else 0.0)
             self.frames_dropped += len(frames) - len(kept)
             for received_ns, frame in kept:
                 self._process(received_ns, frame)
-
-    def _catch_up(self, frames: list) -> list:
-        """The frames of one stream's backlog to process: all of them when that takes at most
-        CATCH_UP_BUDGET_S at the recent processing time per frame (always up to MAX_BACKLOG_FRAMES);
-        otherwise evenly spaced ones, as many as that budget affords, ending with the newest."""
-        if len(frames) <= MAX_BACKLOG_FRAMES:
-            return frames
-        step_s = float(np.median(self._step_s)) if self._step_s else 0.0
-        affordable = max(MAX_BACKLOG_FRAMES, int(CATCH_UP_BUDGET_S / max(step_s, 1e-3)))
-        if len(frames) <= affordable:
-            return frames
-        stride = math.ceil(len(frames) / affordable)
-        return frames[::-1][::stride][::-1]
 
     def _accept(self, parts: list[bytes]) -> pm.Frame | None:
         """Decode and order-check one frame message; None (counted under its reason) if rejected."""

@@ -298,12 +298,26 @@ def test_falling_behind_processes_evenly_spaced_frames_and_counts_drops(tmp_path
     assert frames == sorted(frames) and frames[-1] == 41 and len(frames) < 42, frames
 
 
+def test_a_backlog_is_thinned_to_evenly_spaced_frames_only_beyond_the_budget():
+    """The choice itself, with known step times: a backlog the budget affords is processed whole; a longer
+    one is thinned to evenly spaced frames ending with the newest, never below MAX_BACKLOG_FRAMES."""
+    from service.daemon import CATCH_UP_BUDGET_S, MAX_BACKLOG_FRAMES, catch_up
+
+    burst = list(range(48))
+    assert catch_up(burst, step_s=CATCH_UP_BUDGET_S / 64) == burst  # 2 ms a frame (one subject): all
+    assert catch_up(burst[:MAX_BACKLOG_FRAMES], step_s=1.0) == burst[:MAX_BACKLOG_FRAMES]  # always these
+    kept = catch_up(burst, step_s=0.02)  # 20 ms: the budget affords 12
+    assert len(kept) <= 12 and kept[-1] == 47 and set(np.diff(kept)) == {4}, kept
+    kept = catch_up(burst, step_s=5.0)  # however slow: MAX_BACKLOG_FRAMES of them, evenly spaced
+    assert len(kept) >= MAX_BACKLOG_FRAMES and kept[-1] == 47 and len(set(np.diff(kept))) == 1, kept
+
+
 def test_a_burst_is_thinned_to_evenly_spaced_frames_not_a_jump(tmp_path):
     """A sender that stalled and then sent 48 frames at once, to a daemon whose frames take >= 20 ms: the
-    catch-up budget affords at most 12 of them, so evenly spaced ones are processed (every 4th or closer),
-    ending with the newest: the tracker sees the motion at a lower rate, not one jump of 48 frames."""
-    from service.daemon import CATCH_UP_BUDGET_S
-
+    daemon works through evenly spaced frames of the burst (every 4th or closer), ending with the newest,
+    and counts the others as dropped: the tracker sees the motion at a lower rate, not one jump of 48
+    frames. (How many it keeps depends on whether the burst is all queued when the held frame is released
+    or arrives over two loop turns on a stalled machine, so that count is tested on `catch_up` above.)"""
     gate = threading.Event()
 
     class Gated(FakeEngine):  # holds frame 0 until the burst is queued behind it
@@ -313,7 +327,6 @@ def test_a_burst_is_thinned_to_evenly_spaced_frames_not_a_jump(tmp_path):
             return super().step(frame)
 
     engine = Gated(step_s=0.02)
-    assert CATCH_UP_BUDGET_S / engine.step_s <= 12.5
     with running(Daemon(free_config(tmp_path), engine)) as d:
         d.send(frame(0))
         deadline = time.monotonic() + TIMEOUT_S
@@ -325,8 +338,7 @@ def test_a_burst_is_thinned_to_evenly_spaced_frames_not_a_jump(tmp_path):
         gate.set()
         status = d.wait_status(lambda s: s["frames_processed"] + s["frames_dropped"] == 49)
     frames = [f.frame for f in engine.inputs]
-    assert frames[0] == 0 and frames[-1] == 48 and len(frames) <= 13, frames
-    assert max(np.diff(frames)) <= 4, frames
+    assert frames[0] == 0 and frames[-1] == 48 and max(np.diff(frames)) <= 4, frames
     assert status["frames_dropped"] == 49 - len(frames) > 0
 
 
