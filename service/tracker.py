@@ -15,8 +15,9 @@
    `reject_residual_m` are withdrawn: a wrong label costs more than a missing one. On a segment none of
    whose markers is labeled (its pose is the fit's guess), markers are taken two or more at once, at the
    model's distances. Markers neither can place, unlabeled a few frames though in view (a hand that moved
-   while hidden, where the fit, with nothing to hold it, kept it), are looked for by registering their
-   segment around its joint. A subject with fewer than 4 labels (it left the volume, or was hidden whole)
+   while hidden, where the fit, with nothing to hold it, kept it), and the markers of a segment none of
+   whose markers is labeled (a foot back from an occlusion: its partners across the joint place it no
+   better than the fit) are first looked for by registering their segment around its joint. A subject with fewer than 4 labels (it left the volume, or was hidden whole)
    is looked for by registering its last marker cloud onto the unclaimed points nearby (rigid ICP).
    Every SHAPE_EVERY_FRAMES frames, labels permuted within a segment (a wrist triad after a fast pass,
    tracked permuted since, which the partner statistics absorb) are put back in the order the segment's
@@ -946,7 +947,6 @@ def step(
             pred_missing[use] = coast[use]
             gate_missing[use] = config.reacquire_gate_m
     gate_missing = np.where(missing, gate_missing, 0.0)
-    rows, cols, _ = _assign(pred_missing, gate_missing, points, ~taken)
     reacquired = np.zeros(m, bool)
 
     def accept(rows, cols, segment_rule: bool):
@@ -964,18 +964,28 @@ def step(
         taken[cols] = True
         return point_index >= 0, _gather(points, point_index)
 
-    if len(rows):
-        labeled, cur = accept(rows, cols, segment_rule=model.has_skeleton)
+    # Markers neither the fit nor their partners can place, unlabeled a few frames though in view, are
+    # looked for first, by registering their segment around its joint: markers the fit cannot place (a
+    # hand flicked while hidden is found where the fit never looks), and every marker of a segment none of
+    # whose markers is labeled. Such a segment (a foot back from an occlusion) moved unseen: the fit and
+    # its partners across the joint both keep it where it was, and the Hungarian, left to itself, took
+    # the toe marker's point for the fifth metatarsal and so on (135_02 at L3).
     searched = np.zeros(m, bool)  # found where the fit does not look: the fit's word on them is void
-    # Markers the fit cannot place, unlabeled a few frames though in view: their segment is looked for
-    # around its joint (a hand flicked while hidden is found where the fit never looks).
     if model.has_skeleton and st.skel_pred_m is not None and st.frames % SEARCH_EVERY_FRAMES == 0:
-        lost = ~labeled & st.ever_seen & (st.hidden_frames >= SEARCH_LOST_FRAMES) & (~has_rigid | (spread0 > LOOSE_SPREAD_M))
+        seg = model.marker_segment
+        observed = np.zeros(N_SEGMENTS, bool)
+        observed[seg[labeled & (seg >= 0)]] = True
+        lost = ~labeled & st.ever_seen & (st.hidden_frames >= SEARCH_LOST_FRAMES) & (seg >= 0)
+        lost &= ~has_rigid | (spread0 > LOOSE_SPREAD_M) | ~observed[np.maximum(seg, 0)]
         if lost.any():
             found = _search_segments(model, st, points, ~taken, labeled, cur, lost)
             if found:
                 labeled, cur = accept(np.array(list(found)), np.array(list(found.values())), segment_rule=False)
                 searched[list(found)] = labeled[list(found)]
+                gate_missing[labeled] = 0.0
+    rows, cols, _ = _assign(pred_missing, gate_missing, points, ~taken)
+    if len(rows):
+        labeled, cur = accept(rows, cols, segment_rule=model.has_skeleton)
 
     # Labels permuted within a segment (a wrist triad after a fast pass or a re-acquisition) are put back
     # in the order the segment's marker layout says.
