@@ -20,8 +20,9 @@
    better than the fit) are first looked for by registering their segment around its joint. A subject with fewer than 4 labels (it left the volume, or was hidden whole)
    is looked for by registering its last marker cloud onto the unclaimed points nearby (rigid ICP).
    Every SHAPE_EVERY_FRAMES frames, labels permuted within a segment (a wrist triad after a fast pass,
-   tracked permuted since, which the partner statistics absorb) are put back in the order the segment's
-   calibrated marker layout says (`_relabel_by_shape`).
+   tracked permuted since, which the partner statistics absorb), or a re-acquired label on the point of
+   another marker of its segment, are put back where the segment's calibrated marker layout says
+   (`_relabel_by_shape`).
 4. The skeleton fit (optimistix Gauss-Newton, `service.solver`) is launched on the frame's final labels when
    a hidden marker is left that rigid partners cannot place, and at least every `max_skip_frames` frames
    (and `max_skip_s` seconds); otherwise it is skipped. It computes asynchronously (XLA's thread) while
@@ -672,16 +673,24 @@ def _sym3_eigenvalues(M: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=None)
-def _relabellings(n: int) -> np.ndarray:
-    """(C, n) ways to give n labeled points (now on slots 0..n-1) each other's labels, the identity first:
-    every permutation for small segments, else every swap of two (a torso of 7: 21, not 5040)."""
-    if n <= SHAPE_ALL_MAPS:
-        return np.array(list(itertools.permutations(range(n))), dtype=int)
+def _relabellings(n: int, s: int | None = None) -> np.ndarray:
+    """(C, n) ways to give n labeled points (now on slots 0..n-1 of a segment's s >= n marker slots; the
+    slots beyond n are its unlabeled markers) labels from those slots, one each, the identity first: every
+    assignment for small segments, else every swap of two labels and every label handed to an unlabeled
+    marker (a torso of 7: 21 swaps, not 5040 permutations)."""
+    s = n if s is None else s
+    if n <= SHAPE_ALL_MAPS and s <= SHAPE_ALL_MAPS + 1:
+        return np.array(list(itertools.permutations(range(s), n)), dtype=int)
     maps = [list(range(n))]
     for i, j in itertools.combinations(range(n), 2):
         p = list(range(n))
         p[i], p[j] = j, i
         maps.append(p)
+    for i in range(n):
+        for u in range(n, s):
+            p = list(range(n))
+            p[i] = u
+            maps.append(p)
     return np.array(maps, dtype=int)
 
 
@@ -694,7 +703,9 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     distances absorb it (their spread grows until nothing looks wrong). The layout does not: on 135_02
     the true labels of a forearm fit it to ~11 mm RMS, any permutation of them to 30-80 mm, every frame.
     So each segment's labeled points are registered (Kabsch) onto the offsets of the markers they carry,
-    and, where that fits poorly, onto every permutation of their labels."""
+    and, where that fits poorly, onto every permutation of their labels, and every assignment that hands
+    a just re-acquired marker's point to one of the segment's unlabeled markers (135_02 at L3: the ankle
+    marker came back on the fifth metatarsal's point, both hidden for a second, and stayed there)."""
     m = len(point_index)
     changed = np.zeros(m, bool)
     labeled = point_index >= 0
@@ -708,6 +719,10 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     if len(ks) == 0:
         return changed
     groups = [np.flatnonzero(labeled & slots & (seg == k)) for k in ks]
+    # each segment's labeled slots, then its unlabeled ones: a marker re-acquired on another's point (the
+    # ankle marker on the fifth metatarsal's, which was hidden too) is put back by handing its point to the
+    # unlabeled marker whose place in the layout it is
+    spare = [np.flatnonzero(~labeled & slots & (seg == k)) for k in ks]
     width = max(len(g) for g in groups)
     A = np.zeros((len(ks), width, 3))
     B = np.zeros((len(ks), width, 3))
@@ -722,35 +737,40 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     # widest segment): one call instead of one per segment, which cost more than the arithmetic
     flagged = np.flatnonzero(~fits)
     proposals = {}
-    all_maps = [_relabellings(len(groups[r])) for r in flagged]
+    all_maps = [_relabellings(len(groups[r]), len(groups[r]) + len(spare[r])) for r in flagged]
     start = np.concatenate([[0], np.cumsum([len(mp) for mp in all_maps], dtype=int)])
     Am = np.zeros((start[-1], width, 3))
     Bm = np.zeros_like(Am)
     wm = np.zeros(Am.shape[:2], bool)
     for r, maps, s0, s1 in zip(flagged, all_maps, start[:-1], start[1:]):
-        lab = groups[r]
-        Am[s0:s1, : len(lab)], Bm[s0:s1, : len(lab)], wm[s0:s1, : len(lab)] = layout[lab[maps]], cur[lab], True
+        lab, slot = groups[r], np.concatenate([groups[r], spare[r]])
+        Am[s0:s1, : len(lab)], Bm[s0:s1, : len(lab)], wm[s0:s1, : len(lab)] = layout[slot[maps]], cur[lab], True
     rms_all = _kabsch_rms(Am, Bm, wm) if len(flagged) else None
     for r, maps, s0, s1 in zip(flagged, all_maps, start[:-1], start[1:]):
-        lab, rms = groups[r], rms_all[s0:s1].copy()
+        lab, slot, rms = groups[r], np.concatenate([groups[r], spare[r]]), rms_all[s0:s1].copy()
         fits[r] = rms.min() < SHAPE_GOOD_RMS_M
         # a relabelling the layout itself is symmetric under (a square cluster plate turned by 90 degrees,
         # two markers equidistant from the rest) cannot be told from the identity: never taken
-        key = lab.tobytes()  # the layout's own symmetries: computed once per set of labeled markers
+        key = slot.tobytes() + bytes([len(lab)])  # the layout's own symmetries: once per set of slots
         symmetric_rms = st.shape_symmetry.get(key)
         if symmetric_rms is None:
             if len(st.shape_symmetry) > 256:
                 st.shape_symmetry.clear()
             ones = np.ones(maps.shape, bool)
-            symmetric_rms = st.shape_symmetry[key] = _kabsch_rms(layout[lab[maps]], np.broadcast_to(layout[lab], maps.shape + (3,)), ones)
-        # a permutation trades labels between neighbours (a wrist triad, a foot's markers): labels that would
+            symmetric_rms = st.shape_symmetry[key] = _kabsch_rms(layout[slot[maps]], np.broadcast_to(layout[lab], maps.shape + (3,)), ones)
+        # a relabelling trades labels between neighbours (a wrist triad, a foot's markers): labels that would
         # jump across the body tell of a layout calibrated wrong (a seed lying still), not of a permutation
-        jump = _norm(cur[lab][:, None] - cur[lab][None])[np.arange(len(lab)), maps].max(1)
-        rms = np.where((symmetric_rms < SHAPE_DISTINCT_M) | (jump > SHAPE_MAX_JUMP_M), np.inf, rms)
+        # (an unlabeled marker's label comes from where it was last)
+        where = np.where(np.isfinite(cur[slot]), cur[slot], st.pos_m[slot])
+        jump = _norm(cur[lab][:, None] - where[None])[np.arange(len(lab)), maps].max(1)
+        # a label goes to an unlabeled marker only from a re-acquisition still on probation (a marker
+        # tracked all along is not suspected of sitting on another's point)
+        handed = ((maps >= len(lab)) & (st.provisional[lab] <= 0)[None, :]).any(1)
+        rms = np.where((symmetric_rms < SHAPE_DISTINCT_M) | (jump > SHAPE_MAX_JUMP_M) | handed, np.inf, rms)
         rms[0] = np.inf
         best = int(np.argmin(rms))
         if rms[best] < min(SHAPE_GAIN * rms0[r], SHAPE_GOOD_RMS_M) and symmetric_rms[best] > 2.0 * rms[best]:
-            proposals[r] = lab[maps[best]]
+            proposals[r] = slot[maps[best]]
         else:
             st.shape_votes.pop(int(ks[r]), None)
     # A layout to be trusted fits the labels, or a permutation of them, on most checks; one that seldom
@@ -773,12 +793,14 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
             continue
         del st.shape_votes[int(ks[r])]
         proposed = point_index.copy()
+        proposed[lab] = -1
         proposed[new_labels] = point_index[lab]
-        moved = lab[proposed[lab] != point_index[lab]]
+        slot = np.concatenate([lab, spare[r]])
+        moved = slot[proposed[slot] != point_index[slot]]
         # the long-run partner distances must not object: they have taken a long-standing permutation in
         # (the target here) but refuse a fresh one (a layout near-symmetric under it, a skin-moved segment)
         z_now = distance_misfit(st, cur, labeled, moved)[moved]
-        z_new = distance_misfit(st, _gather(points, proposed), labeled, moved)[moved]
+        z_new = distance_misfit(st, _gather(points, proposed), proposed >= 0, moved)[moved]
         z_now, z_new = z_now[np.isfinite(z_now)], z_new[np.isfinite(z_new)]
         if len(z_new) and np.median(z_new) > max(Z_SUSPECT, 2.0 * (np.median(z_now) if len(z_now) else 0.0)):
             continue

@@ -280,6 +280,42 @@ def test_labels_permuted_within_a_segment_are_put_back_by_its_layout():
     assert set(np.flatnonzero(changed)) == set(fore[1:4])
 
 
+def test_a_re_acquired_label_on_a_hidden_neighbours_point_is_handed_to_it():
+    """A forearm marker re-acquired on the point of another forearm marker, which is unlabeled (both were
+    hidden; it came back first): the layout says the point is the other's, so it is handed over once
+    SHAPE_CONFIRM checks agree, and the re-acquired marker is unlabeled again. Only a label on probation
+    (just re-acquired) is handed on: one tracked all along is left."""
+    from protocol.skeleton import SEGMENTS
+
+    perf = perform(3, duration_s=0.1)
+    m = len(perf.marker_names)
+    fore = np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
+    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
+                                 perf.joint_offsets_m, True, layout_offsets_m=perf.marker_offsets_m,
+                                 layout_rms_m=np.full(m, 0.002))
+    points = perf.recording.points_m[0]
+    st = tracker.new_state(model, points, t_ns(0))
+    st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
+    a, b = fore[1], fore[0]  # a wrist marker on the point of the forearm marker 15 cm up
+    wrong = np.arange(m)
+    wrong[a], wrong[b] = b, -1  # a sits on b's point; b unlabeled
+
+    def checks(provisional: int):
+        idx = wrong.copy()
+        st.provisional[:] = 0
+        st.provisional[a] = provisional
+        for _ in range(tracker.SHAPE_CONFIRM):
+            cur = np.where(idx[:, None] >= 0, points[np.maximum(idx, 0)], np.nan)
+            changed = tracker._relabel_by_shape(model, st, points, idx, cur)
+        return idx, changed
+
+    idx, changed = checks(provisional=0)
+    assert (idx == wrong).all() and not changed.any()
+    idx, changed = checks(provisional=tracker.PROBATION_FRAMES)
+    assert idx[b] == b and idx[a] == -1 and set(np.flatnonzero(changed)) == {a, b}
+    assert (np.delete(idx, [a, b]) == np.delete(np.arange(m), [a, b])).all()
+
+
 def run_tracker(points_m: np.ndarray, seed_frames: int, shuffle_seed: int = 0, ghosts_m=None):
     """Seed, then step every later frame with the points shuffled; returns per frame the true marker each
     marker slot was given (-1 = none, -2 = a ghost)."""
