@@ -17,8 +17,9 @@
    model's distances. Markers neither can place, unlabeled a few frames though in view (a hand that moved
    while hidden, where the fit, with nothing to hold it, kept it), and the markers of a segment none of
    whose markers is labeled (a foot back from an occlusion: its partners across the joint place it no
-   better than the fit) are first looked for by registering their segment around its joint. A subject with fewer than 4 labels (it left the volume, or was hidden whole)
-   is looked for by registering its last marker cloud onto the unclaimed points nearby (rigid ICP).
+   better than the fit) are first looked for by registering their segment around its joint. A subject
+   with fewer than 4 labels (it left the volume, or was hidden whole) is looked for by registering its
+   last marker cloud onto the unclaimed points nearby (rigid ICP).
    Every SHAPE_EVERY_FRAMES frames, labels permuted within a segment (a wrist triad after a fast pass,
    tracked permuted since, which the partner statistics absorb), or a re-acquired label on the point of
    another marker of its segment, are put back where the segment's calibrated marker layout says
@@ -723,6 +724,7 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     # ankle marker on the fifth metatarsal's, which was hidden too) is put back by handing its point to the
     # unlabeled marker whose place in the layout it is
     spare = [np.flatnonzero(~labeled & slots & (seg == k)) for k in ks]
+    slot_of = [np.concatenate([g, sp]) for g, sp in zip(groups, spare)]
     width = max(len(g) for g in groups)
     A = np.zeros((len(ks), width, 3))
     B = np.zeros((len(ks), width, 3))
@@ -743,11 +745,11 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     Bm = np.zeros_like(Am)
     wm = np.zeros(Am.shape[:2], bool)
     for r, maps, s0, s1 in zip(flagged, all_maps, start[:-1], start[1:]):
-        lab, slot = groups[r], np.concatenate([groups[r], spare[r]])
+        lab, slot = groups[r], slot_of[r]
         Am[s0:s1, : len(lab)], Bm[s0:s1, : len(lab)], wm[s0:s1, : len(lab)] = layout[slot[maps]], cur[lab], True
     rms_all = _kabsch_rms(Am, Bm, wm) if len(flagged) else None
     for r, maps, s0, s1 in zip(flagged, all_maps, start[:-1], start[1:]):
-        lab, slot, rms = groups[r], np.concatenate([groups[r], spare[r]]), rms_all[s0:s1].copy()
+        lab, slot, rms = groups[r], slot_of[r], rms_all[s0:s1].copy()
         fits[r] = rms.min() < SHAPE_GOOD_RMS_M
         # a relabelling the layout itself is symmetric under (a square cluster plate turned by 90 degrees,
         # two markers equidistant from the rest) cannot be told from the identity: never taken
@@ -795,8 +797,7 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
         proposed = point_index.copy()
         proposed[lab] = -1
         proposed[new_labels] = point_index[lab]
-        slot = np.concatenate([lab, spare[r]])
-        moved = slot[proposed[slot] != point_index[slot]]
+        moved = slot_of[r][proposed[slot_of[r]] != point_index[slot_of[r]]]
         # the long-run partner distances must not object: they have taken a long-standing permutation in
         # (the target here) but refuse a fresh one (a layout near-symmetric under it, a skin-moved segment)
         z_now = distance_misfit(st, cur, labeled, moved)[moved]
