@@ -239,16 +239,18 @@ def test_kabsch_rms_matches_a_kabsch_by_svd():
     np.testing.assert_allclose(tracker._kabsch_rms(A, B, w), want, atol=1e-9)
 
 
-def test_labels_permuted_within_a_segment_are_put_back_by_its_layout():
-    """Three forearm labels cycled among their points (a wrist triad after a fast pass) are put back in
-    the order the segment's calibrated layout says, once SHAPE_CONFIRM checks agree; correct labels are
-    left alone, and so is a model whose layout was never measured."""
+@pytest.mark.parametrize("segment, first", [("r_forearm", 1), ("r_foot", 0)])
+def test_labels_permuted_within_a_segment_are_put_back_by_its_layout(segment, first):
+    """Three labels of a segment cycled among their points (a wrist triad after a fast pass; a foot's heel,
+    toe and fifth metatarsal, the heel's label 20 cm from its point) are put back in the order the
+    segment's calibrated layout says, once SHAPE_CONFIRM checks agree; correct labels are left alone, and
+    so is a model whose layout was never measured."""
     from protocol.skeleton import SEGMENTS
 
     perf = perform(3, duration_s=0.1)
     m = len(perf.marker_names)
-    fore = np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
-    assert len(fore) >= 4
+    fore = np.flatnonzero(perf.marker_segment == SEGMENTS.index(segment))[first:]
+    assert len(fore) >= 3
     model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
                                  perf.joint_offsets_m, True, layout_offsets_m=perf.marker_offsets_m,
                                  layout_rms_m=np.full(m, 0.002))
@@ -258,7 +260,7 @@ def test_labels_permuted_within_a_segment_are_put_back_by_its_layout():
     st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
     right = np.arange(m)
     wrong = right.copy()
-    wrong[fore[1:4]] = right[fore[[2, 3, 1]]]  # the wrist pair and the finger marker, 8-11 cm apart
+    wrong[fore[:3]] = right[fore[[1, 2, 0]]]  # the wrist pair and the finger marker 8-11 cm apart; the foot's up to 20 cm
 
     def check(point_index, model=model):
         cur = points[point_index]
@@ -277,7 +279,7 @@ def test_labels_permuted_within_a_segment_are_put_back_by_its_layout():
         assert not check(idx).any()
     changed = check(idx)
     assert (idx == right).all()
-    assert set(np.flatnonzero(changed)) == set(fore[1:4])
+    assert set(np.flatnonzero(changed)) == set(fore[:3])
 
 
 def test_a_re_acquired_label_on_a_hidden_neighbours_point_is_handed_to_it():
