@@ -771,8 +771,9 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
         jump = _norm(cur[lab][:, None] - where[None])[np.arange(len(lab)), maps].max(1)
         # a label goes to an unlabeled marker only from a re-acquisition still on probation (a marker
         # tracked all along is not suspected of sitting on another's point)
-        handed = ((maps >= len(lab)) & (st.provisional[lab] <= 0)[None, :]).any(1)
-        limit = np.where((maps >= len(lab)).any(1), SHAPE_MAX_HANDOVER_M, SHAPE_MAX_JUMP_M)
+        to_spare = maps >= len(lab)  # (C, n): the label of point j goes to an unlabeled marker
+        handed = (to_spare & (st.provisional[lab] <= 0)[None, :]).any(1)
+        limit = np.where(to_spare.any(1), SHAPE_MAX_HANDOVER_M, SHAPE_MAX_JUMP_M)
         rms = np.where((symmetric_rms < SHAPE_DISTINCT_M) | (jump > limit) | handed, np.inf, rms)
         rms[0] = np.inf
         best = int(np.argmin(rms))
