@@ -36,9 +36,11 @@ _SHOULDER_Z, _SHOULDER_Y = 0.815, 0.125
 _UPPERARM, _FOREARM_HAND = 0.186, 0.25
 _KNEE_Z, _ANKLE_Z = 0.285, 0.045
 _FOOT_FWD = 0.11
-# Capsule radius of each segment [fraction of height] for the nearest-bone assignment.
+_PELVIS_RISE = 0.04  # the pelvis's bone across the hips runs this far above the hip joints
+# Capsule radius of each segment [fraction of height] for the nearest-bone assignment. The abdomen is
+# narrower than the pelvis (at 0.08 it took the four waist markers of the CMU set, leaving the root none).
 _RADIUS = {
-    "pelvis": 0.075, "abdomen": 0.08, "torso": 0.085, "head": 0.06,
+    "pelvis": 0.075, "abdomen": 0.06, "torso": 0.085, "head": 0.06,
     "l_upperarm": 0.03, "l_forearm": 0.025, "r_upperarm": 0.03, "r_forearm": 0.025,
     "l_thigh": 0.05, "l_shank": 0.035, "l_foot": 0.03, "r_thigh": 0.05, "r_shank": 0.035, "r_foot": 0.03,
 }
@@ -57,6 +59,12 @@ class BodyFrame:
 
 def body_frame(P: np.ndarray) -> BodyFrame:
     """Body frame of an upright person from their marker positions P (M, 3)."""
+    return _body_frame(P)[0]
+
+
+def _body_frame(P: np.ndarray) -> tuple[BodyFrame, float]:
+    """`body_frame` and how sure it is which way the body faces: how far [m] the toes lie ahead of the
+    ankles, summed over the feet."""
     P = P[np.isfinite(P[:, 0])]
     if len(P) < 8:
         raise CalibrationError(f"only {len(P)} markers visible; at least 8 are needed")
@@ -81,7 +89,9 @@ def body_frame(P: np.ndarray) -> BodyFrame:
     if foot.sum() < 2:
         raise CalibrationError("no foot markers near the floor: the person is not standing")
     votes = []
-    side_of = (P[:, :2] - c) @ lateral
+    # the feet are split by the midline between them (the upper body's put a foot of a wide stance under a
+    # leaning trunk in the other foot's half: its "toe" was the other foot)
+    side_of = (P[:, :2] - P[foot, :2].mean(0)) @ lateral
     for side in (side_of > 0, side_of <= 0):
         f_idx = np.flatnonzero(foot & side)
         if len(f_idx) < 2:
@@ -97,20 +107,33 @@ def body_frame(P: np.ndarray) -> BodyFrame:
     up = np.array([0.0, 0.0, 1.0])
     left = np.cross(up, forward)
     origin = np.array([c[0], c[1], floor])
-    return BodyFrame(np.stack([forward, left, up], axis=1), origin, float(h))
+    return BodyFrame(np.stack([forward, left, up], axis=1), origin, float(h)), abs(float(sum(votes)))
 
 
-def _vote_heading(bf: BodyFrame, history_m: np.ndarray, n: int = 12) -> BodyFrame:
-    """Let up to n frames of the history vote on which way the body faces, so that one frame with a
-    foot lifted or an arm across the shoulders cannot turn the subject around."""
+def _vote_heading(bf: BodyFrame, positions_m: np.ndarray, history_m: np.ndarray, n: int = 24) -> BodyFrame:
+    """Let up to n frames of the history vote on which way the body faces (at `positions_m`), so that one
+    frame with a foot lifted or an arm across the shoulders cannot turn the subject around. A subject who
+    turned meanwhile is turned back first: each frame's facing is carried onto `positions_m` by the rigid
+    motion of the markers the two share (trimmed: swinging limbs drop out), and the votes are weighted by
+    how sure each frame is (`_body_frame`)."""
     fwd = bf.R_world_body[:, 0]
-    vote = 0.0
+    total = np.zeros(3)
+    ref_ok = np.isfinite(positions_m[:, 0])
     for f in np.linspace(0, len(history_m) - 1, min(n, len(history_m))).astype(int):
+        P = history_m[f]
+        common = np.flatnonzero(ref_ok & np.isfinite(P[:, 0]))
+        if len(common) < 8:
+            continue
         try:
-            vote += float(np.sign(body_frame(history_m[f]).R_world_body[:, 0] @ fwd))
+            bf_f, sure = _body_frame(P)
         except CalibrationError:
             continue
-    if vote >= 0:
+        R, t = rigid_motion(P[common], positions_m[common])
+        err = np.linalg.norm(P[common] @ R.T + t - positions_m[common], axis=1)
+        keep = common[err <= np.quantile(err, 0.6)]
+        R, _ = rigid_motion(P[keep], positions_m[keep])
+        total += sure * (R @ bf_f.R_world_body[:, 0])
+    if total @ fwd >= 0:
         return bf
     R = bf.R_world_body * np.array([-1.0, -1.0, 1.0])  # turn 180 degrees about z
     return BodyFrame(R, bf.origin_m, bf.height_m)
@@ -134,7 +157,7 @@ def calibrate(
     """
     bf = body_frame(positions_m)
     if history_m is not None and len(history_m) >= 10:
-        bf = _vote_heading(bf, history_m)
+        bf = _vote_heading(bf, positions_m, history_m)
     h = bf.height_m
     Q = (positions_m - bf.origin_m) @ bf.R_world_body / h  # body coordinates, in heights
     J = {}  # joint positions (segment origins), body coordinates, in heights
@@ -159,8 +182,12 @@ def calibrate(
             d_ua = np.array([0.0, s, 0.0])
         d_ua /= max(np.linalg.norm(d_ua), 1e-9)
         elbow = sh + d_ua * _UPPERARM
+        # the hand: the farthest arm marker out beside the body, if any reaches past the elbow (a hand
+        # hanging by a spread thigh is farther out than the thigh's markers, which may be farther away)
+        out = s * arm[:, 1] > _SHOULDER_Y + 0.03 if len(arm) else np.zeros(0, bool)
+        reach = np.where(out, r, -1.0) if (out & (r > _UPPERARM * 1.2)).any() else r
         if len(arm) and r.max() > _UPPERARM * 1.2:
-            d_fa = arm[np.argmax(r)] - elbow
+            d_fa = arm[np.argmax(reach)] - elbow
             d_fa /= max(np.linalg.norm(d_fa), 1e-9)
         else:
             d_fa = d_ua
@@ -177,7 +204,8 @@ def calibrate(
         tips[f"{side}_upperarm"] = J[f"{side}_forearm"]
     tips["pelvis"], tips["abdomen"], tips["torso"], tips["head"] = J["abdomen"], J["torso"], J["head"], np.array([0.0, 0, 1.0])
     bones = {name: [(J[name], tips[name])] for name in SEGMENTS}
-    bones["pelvis"].append((J["l_thigh"], J["r_thigh"]))
+    # the pelvis spans the hips above the hip joints (below them is thigh: a marker high on the thigh is not pelvis)
+    bones["pelvis"].append((J["l_thigh"] + [0, 0, _PELVIS_RISE], J["r_thigh"] + [0, 0, _PELVIS_RISE]))
     # the shoulder girdle, short of the shoulder joints so upper-arm markers go to the arm
     bones["torso"].append((J["l_upperarm"] * [1, 0.6, 1], J["r_upperarm"] * [1, 0.6, 1]))
     bones["l_foot"].append((J["l_foot"] - [0.04, 0, 0.03], tips["l_foot"]))
@@ -211,6 +239,13 @@ def calibrate(
     return marker_segment, marker_offsets, joint_offsets, joints_world[0], R
 
 
+# `_by_rigidity`: a marker moves when another segment's markers keep their distances to it at least twice as
+# steady as its own segment's (JOINED_RATIO: four times, for the segment across a joint from it), and its
+# own segment's do not within MIN_UNSTEADY_M.
+MIN_UNSTEADY_M = 0.004
+JOINED_RATIO = 0.25
+
+
 def _by_rigidity(marker_segment: np.ndarray, cost: np.ndarray, history_m: np.ndarray, margin: float = 0.08) -> np.ndarray:
     """Reassign each marker among its plausible segments (bone cost within `margin` heights of the best,
     arm segments always plausible) to the one whose other markers keep the steadiest distances to it,
@@ -233,7 +268,10 @@ def _by_rigidity(marker_segment: np.ndarray, cost: np.ndarray, history_m: np.nda
                 steadiness[k] = float(np.median(vals))
         if out[i] in steadiness and steadiness:
             k_best = min(steadiness, key=steadiness.get)
-            if steadiness[k_best] < 0.5 * steadiness[out[i]] and steadiness[out[i]] > 0.004:
+            # two segments joined at a joint that hardly bent move as one: only clear evidence separates them
+            joined = PARENTS[k_best] == out[i] or PARENTS[out[i]] == k_best
+            ratio = JOINED_RATIO if joined else 0.5
+            if steadiness[k_best] < ratio * steadiness[out[i]] and steadiness[out[i]] > MIN_UNSTEADY_M:
                 out[i] = k_best
     return out
 

@@ -91,6 +91,87 @@ def test_calibrate_keeps_sides_and_limbs(marker_set, seed):
             assert g == t, (name, g, t)
 
 
+def _calibrated_at(perf, t_s):
+    """(names, calibrated segment names, true segment names) of a calibration at t_s from the second before it."""
+    P = perf.recording.points_m
+    f = int(t_s * perf.recording.rate_hz)
+    seg = calibrate(P[f], P[max(0, f - 120) : f + 1 : 4])[0]
+    return perf.marker_names, [SEGMENTS[i] for i in seg], [SEGMENTS[i] for i in perf.marker_segment]
+
+
+@pytest.mark.parametrize("marker_set, seed, t_s, stems", [
+    ("cmu41", 22, 3.2, ("FWT", "BWT", "THI")),  # the abdomen took the waist markers: the root had none
+    ("cmu41", 25, 4.5, ("FWT", "BWT", "THI")),
+    ("gt53", 21, 6.5, ("FWT", "MWT", "BWT", "HIP")),  # the pelvis took the markers high on the thighs
+])
+def test_calibrate_puts_waist_markers_on_the_pelvis_and_high_thigh_markers_on_the_thigh(marker_set, seed, t_s, stems):
+    names, got, truth = _calibrated_at(perform(seed, marker_set=marker_set, duration_s=t_s + 0.1), t_s)
+    for name, g, t in zip(names, got, truth):
+        if name[1:] in stems:
+            assert g == t, (name, g, t)
+
+
+@pytest.mark.parametrize("seed", [20, 23])
+def test_calibrate_with_hands_hanging_by_the_thighs_keeps_each_on_its_segment(seed):
+    """Walking, arms down: the hand was the arm marker farthest from the shoulder, and a thigh marker can
+    be farther; the forearm then pointed at the thigh and took its marker."""
+    names, got, truth = _calibrated_at(perform(seed, marker_set="cmu41", duration_s=7.6), 7.5)
+    for name, g, t in zip(names, got, truth):
+        if name[1:] in ("THI", "FRM", "WRA", "WRB", "FIN"):
+            assert g == t, (name, g, t)
+
+
+def test_body_frame_reads_the_feet_of_a_staggered_stance_under_a_leaning_trunk():
+    """The feet are told apart by their own midline: the upper body's, 30 cm to the left, put both feet on
+    one side, where the left ankle (the highest foot marker) had the right foot's heel, set back, farthest
+    from it: "toes" pointing backwards."""
+    heading = 0.4
+    perf = perform(14, marker_set="cmu41", duration_s=0.1, heading_rad=heading)
+    P = perf.recording.points_m[0].copy()
+    forward = np.array([np.cos(heading), np.sin(heading), 0.0])
+    left = np.array([-np.sin(heading), np.cos(heading), 0.0])
+    side = (P - P.mean(0)) @ left
+    low = P[:, 2] < 0.12 * perf.height_m
+    P[low & (side < 0)] -= 0.3 * forward  # the right foot a step back
+    P[low & (side > 0), 2] += 0.02  # the left foot's markers the highest
+    P[P[:, 2] > 0.5 * perf.height_m] += 0.3 * left
+    assert body_frame(P).R_world_body[:, 0] @ forward > np.cos(np.radians(15))
+
+
+def test_calibrate_faces_the_subject_the_way_its_history_says_though_it_turned():
+    """Most of the history faces the other way than the calibration frame (the subject turned round
+    at its end): each frame's facing is carried onto the calibration frame before it votes. Voting on the
+    raw facings turned the subject around."""
+    perf = perform(14, marker_set="cmu41", duration_s=0.1, heading_rad=0.0)
+    P = perf.recording.points_m[0]
+    c = P.mean(0) * [1, 1, 0]
+
+    def turned(rad):
+        return (P - c) @ Rotation.from_rotvec([0.0, 0.0, rad]).as_matrix().T + c
+
+    history = np.stack([turned(a) for a in np.linspace(0.0, 0.5, 16)] + [turned(np.pi)])
+    R_root = calibrate(history[-1], history)[4][0]
+    assert R_root[:, 0] @ [-1.0, 0.0, 0.0] > np.cos(np.radians(15))  # facing -x, as the last frame does
+
+
+def test_rigidity_keeps_a_knee_marker_on_a_thigh_whose_wand_wobbles():
+    """Across a joint that hardly bent, two segments move as one: a knee marker keeps steadier distances to
+    the shank below an unbent knee than to a thigh wand that wobbles, but not steadier enough to move."""
+    from service.calibration import _by_rigidity
+
+    TH, SH = SEGMENTS.index("l_thigh"), SEGMENTS.index("l_shank")
+    rng = np.random.default_rng(5)
+    knee, wand, shin = [0.0, 0.15, 0.5], [0.06, 0.17, 0.7], [0.02, 0.15, 0.3]
+    hist = np.stack([np.array([knee, wand, shin, [0.0, 0.1, 0.2]]) + rng.normal(0.0, 0.0005, (4, 3)) for _ in range(40)])
+    hist[:, 1] += rng.normal(0.0, 0.005, (40, 3))  # the wand: ~4 mm of distance spread to the knee ...
+    hist[:, 2:] += rng.normal(0.0, 0.001, (40, 2, 3))  # ... the shank's skin: ~1.5 mm (and 2.5x steadier)
+    seg = np.array([TH, TH, SH, SH])
+    cost = np.full((4, N_SEGMENTS), 0.5)
+    cost[np.arange(4), seg] = 0.0
+    cost[0, SH] = 0.03  # a close call
+    assert list(_by_rigidity(seg, cost, hist)) == [TH, TH, SH, SH]
+
+
 def test_body_frame_forward_does_not_depend_on_shin_markers():
     perf = perform(14, marker_set="cmu41", duration_s=0.1, heading_rad=-1.0)
     forward = body_frame(perf.recording.points_m[0]).R_world_body[:, 0]
