@@ -89,6 +89,8 @@ class JobResult:
     subjects: tuple[str, ...]  # subjects the labeler ended with
     peak_rss_mb: float  # worker process peak resident memory so far
     error: str = ""  # non-empty if the run failed (reported in the table, not fatal)
+    fit_rms_mm: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))  # engine: scored solves' residuals
+    segments: dict = dataclasses.field(default_factory=dict)  # engine: "Subject:Marker" -> segment at the end
 
 
 # ----------------------------------------------------------------------------------------------- data
@@ -161,6 +163,8 @@ def run_job(data_dir: str, job: Job) -> JobResult:
     first = seq.seed_frames if job.mode == "seeded" else 0
     solved = [0, 0]
     subjects: tuple[str, ...] = ()
+    fit_rms_mm: list[float] = []
+    segments: dict[str, str] = {}
     try:
         if job.variant in ENGINE_VARIANTS:
             from service.config import EngineConfig
@@ -178,10 +182,16 @@ def run_job(data_dir: str, job: Job) -> JobResult:
                             labels[i] = f"{out.subject}:{marker}"
                 solved[0] += any(out.solved for out in outputs)
                 solved[1] += 1
+                if frame.frame >= first:
+                    fit_rms_mm.extend(1e3 * out.residual_m for out in outputs if out.solved and np.isfinite(out.residual_m))
                 return labels
 
             given, times = drive(seq, job.mode, step)
             subjects = tuple(engine.subjects())
+            for name in subjects:
+                d = engine.describe(name)
+                if d["has_skeleton"]:
+                    segments.update({f"{name}:{m}": d["segments"][k] for m, k in zip(d["markers"], d["marker_segment"])})
         else:
             tracker = NearestNeighbourTracker(velocity=job.variant == "nnt-velocity")
             given, times = drive(seq, job.mode, lambda frame: tracker.step(frame.points_m, frame.labels))
@@ -199,6 +209,8 @@ def run_job(data_dir: str, job: Job) -> JobResult:
         subjects=subjects,
         peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         error=error,
+        fit_rms_mm=np.array(fit_rms_mm, np.float32),
+        segments=segments,
     )
 
 
@@ -333,6 +345,28 @@ def summary_table(results: list[JobResult], levels: list[str]) -> list[str]:
     return lines
 
 
+def skeleton_lines(results: list[JobResult]) -> list[str]:
+    """The adaptive engine's skeleton per run: solve residuals, and named markers off their segment."""
+    from benchmarks.skeleton import misplaced, residual_summary
+
+    lines = ["| file | level | mode | fit RMS p50 / p90 [mm] | named markers off their segment (at the end) |",
+             "|---|---|---|---|---|"]
+    total = [0, 0]
+    runs = sorted((r for r in results if r.job.variant == "adaptive" and not r.error),
+                  key=lambda r: (r.job.file, r.job.mode, r.job.level))
+    for r in runs:
+        judged, wrong = misplaced(r.segments)
+        if r.job.mode == "seeded":
+            total[0] += judged
+            total[1] += len(wrong)
+        verdict = "no skeleton" if not r.segments else "–" if not judged else (
+            f"{len(wrong)} of {judged}" + (f": {', '.join(wrong[:6])}" + (", ..." if len(wrong) > 6 else "") if wrong else ""))
+        lines.append(f"| {r.job.file} | {r.job.level} | {r.job.mode} | {residual_summary(r.fit_rms_mm)} | {verdict} |")
+    lines += ["", f"Seeded runs: {total[1]} of {total[0]} judged markers off their segment "
+              f"({_pct(total[1] / total[0]) if total[0] else '–'} %)."]
+    return lines
+
+
 def worst_runs(results: list[JobResult], n: int = 12) -> list[JobResult]:
     engine = [r for r in results if r.job.variant == "adaptive" and not r.error and r.score.accuracy < 1]
     return sorted(engine, key=lambda r: r.score.accuracy)[:n]
@@ -422,6 +456,12 @@ def write_report(path: Path, args, meta: dict, files, levels, results, notes, sp
     if plots:
         lines += ["Error-over-time plots of the worst runs: " + ", ".join(f"`{p.relative_to(REPO)}`" for p in plots)
                   + " (not committed).", ""]
+    lines += ["## Skeleton (engine, adaptive)", "",
+              "Fit RMS: the residual of the skeleton's solves over the scored frames. Markers off their segment: "
+              "for the files whose marker names we can read (`benchmarks/skeleton.py`: the CMU/HDM05 and "
+              "Plug-in Gait conventions, joint markers not judged), the markers the subject model carries on "
+              "another segment than their name says, after the whole run (calibration and refinements).", "",
+              *skeleton_lines(results), ""]
     lines += ["## Speed", ""]
     from benchmarks import speed as speed_mod
 
