@@ -359,8 +359,14 @@ def skeleton_lines(results: list[JobResult]) -> list[str]:
         if r.job.mode == "seeded":
             total[0] += judged
             total[1] += len(wrong)
-        verdict = "no skeleton" if not r.segments else "–" if not judged else (
-            f"{len(wrong)} of {judged}" + (f": {', '.join(wrong[:6])}" + (", ..." if len(wrong) > 6 else "") if wrong else ""))
+        if not r.segments:
+            verdict = "no skeleton"
+        elif not judged:
+            verdict = "–"
+        else:
+            verdict = f"{len(wrong)} of {judged}"
+            if wrong:
+                verdict += ": " + ", ".join(wrong[:6]) + (", ..." if len(wrong) > 6 else "")
         lines.append(f"| {r.job.file} | {r.job.level} | {r.job.mode} | {residual_summary(r.fit_rms_mm)} | {verdict} |")
     lines += ["", f"Seeded runs: {total[1]} of {total[0]} judged markers off their segment "
               f"({_pct(total[1] / total[0]) if total[0] else '–'} %)."]
