@@ -30,3 +30,16 @@ def test_misplaced_counts_only_judged_markers():
 def test_residual_summary():
     assert residual_summary(np.zeros(0)) == "–"
     assert residual_summary(np.array([10.0, 10.0, 20.0])) == "10.0 / 18.0"
+
+
+def test_the_report_section_counts_seeded_runs_and_says_when_there_is_no_skeleton():
+    from benchmarks import run
+
+    job = run.Job("f.c3d", "L2", "seeded", "adaptive", None)
+    r = run.JobResult(job=job, n_frames=1, rate_hz=1.0, score=None, step_s=np.zeros(0), solved_fraction=0.0,
+                      subjects=(), peak_rss_mb=0.0, fit_rms_mm=np.array([10.0, 20.0]),
+                      segments={"S:LWRA": "l_upperarm", "S:LWRB": "l_forearm"})
+    lines = run.skeleton_lines([r, run.dataclasses.replace(r, segments={}, fit_rms_mm=np.zeros(0))])
+    assert "| f.c3d | L2 | seeded | 15.0 / 19.0 | 1 of 2: LWRA->l_upperarm |" in lines
+    assert "| f.c3d | L2 | seeded | – | no skeleton |" in lines
+    assert lines[-1] == "Seeded runs: 1 of 2 judged markers off their segment (50.0 %)."
