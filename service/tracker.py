@@ -522,6 +522,8 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
     (two mirror-image markers alone stay unfound)."""
     found: dict[int, int] = {}
     _, pw = world_transforms(st.t_root_m, st.R_parent_segment, model.joint_offsets_m)
+    observed = np.zeros(N_SEGMENTS, bool)
+    observed[model.marker_segment[labeled & (model.marker_segment >= 0)]] = True
     pool = np.flatnonzero(cand)
     if len(pool) == 0:
         return found
@@ -564,7 +566,7 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
             scored.append((len(assignment), float(np.sqrt(np.mean(res**2))), assignment))
         margin, least = 0, 3
         if not scored or max(n for n, _, _ in scored) < 3:
-            scored = _search_free_segment(model, pw, points, pool, los, k) if len(lab) == 0 else []
+            scored = _search_free_segment(model, pw, points, pool, los, k, observed) if len(lab) == 0 else []
             # no joint to pin it: a rival placing one marker fewer makes it ambiguous too, and three
             # markers alone are only the triangle matched (a foot's three were once matched to two of
             # them and the shank's marker: HDM05 at L3, T-pose mode)
@@ -599,13 +601,16 @@ def _unambiguous(scored: list, margin: int = 0, least: int = 3) -> dict[int, int
 
 
 def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray, pool: np.ndarray,
-                         los: np.ndarray, k: int) -> list:
+                         los: np.ndarray, k: int, observed: np.ndarray) -> list:
     """Hypotheses (n placed, RMS, {marker: point}) for segment k, none of whose markers `los` is labeled,
     when its joint cannot anchor the search (its parent moved unseen too): its markers' layout is matched
     as a free rigid body. Three of its markers (the widest triangle) are matched to unclaimed points at
     the same mutual distances, within reach of the grandparent joint (the shoulder for a forearm, held by
     the trunk); the rigid motion must put the segment's joint at its bone's length from there; it then
-    places the other markers. Only markers that keep their layout on the segment take part, and only on
+    places the other markers. When the grandparent moved unseen too, the anchor is the first joint up the
+    chain that an observed segment holds, and the joint must lie within the chain's length of it (a foot
+    whose shank and thigh, one marker each, hid while the subject walked on hangs from the hip: 85_12 at
+    L3, where the stale knee and ankle were 40-65 cm off and the foot stayed unlabeled). Only markers that keep their layout on the segment take part, and only on
     segments with four of them or more (one beyond the triangle to confirm it)."""
     parent = PARENTS[k]
     if model.layout_rms_m is None or len(model.layout_rms_m) != model.n_markers:
@@ -614,8 +619,12 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
     if parent < 0 or len(los) < 4:
         return []
     off = model.marker_offsets_m
-    anchor, bone = pw[parent], _norm(model.joint_offsets_m[k])
-    near = pool[_norm(points[pool] - anchor) < bone + _norm(off[los]).max() + SEARCH_JOINT_TOL_M]
+    top, bones = parent, [_norm(model.joint_offsets_m[k])]  # up the unobserved chain to a held joint
+    while PARENTS[top] >= 0 and not observed[top] and not observed[PARENTS[top]]:
+        bones.append(_norm(model.joint_offsets_m[top]))
+        top = PARENTS[top]
+    anchor, reach = pw[top], sum(bones)
+    near = pool[_norm(points[pool] - anchor) < reach + _norm(off[los]).max() + SEARCH_JOINT_TOL_M]
     if len(near) < 3:
         return []
 
@@ -633,7 +642,9 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
                 continue
             R, t = rigid_motion(A, P[[a, b, c]])
             res = _norm(A @ R.T + t - P[[a, b, c]])
-            if res.max() > 2 * SEARCH_INLIER_M or abs(_norm(t - anchor) - bone) > SEARCH_BONE_TOL_M:
+            d = _norm(t - anchor)  # one bone: at its length; a chain: within its reach
+            off_bone = abs(d - reach) if len(bones) == 1 else d - reach
+            if res.max() > 2 * SEARCH_INLIER_M or off_bone > SEARCH_BONE_TOL_M:
                 continue
             assignment = _placed(off, los, R, t, points, near)
             if len(set(assignment.values())) < len(assignment):
