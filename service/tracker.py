@@ -509,6 +509,13 @@ def _relocate(st: TrackState, points: np.ndarray, cand: np.ndarray, gate_m: floa
     return out
 
 
+def _observed_segments(marker_segment: np.ndarray, labeled: np.ndarray) -> np.ndarray:
+    """(N_SEGMENTS,) bool: segments with at least one labeled marker."""
+    observed = np.zeros(N_SEGMENTS, bool)
+    observed[marker_segment[labeled & (marker_segment >= 0)]] = True
+    return observed
+
+
 def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, cand: np.ndarray,
                      labeled: np.ndarray, cur: np.ndarray, lost: np.ndarray) -> dict[int, int]:
     """Which points markers `lost` (labeled on none of the last SEARCH_LOST_FRAMES frames though their segment
@@ -522,8 +529,7 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
     (two mirror-image markers alone stay unfound)."""
     found: dict[int, int] = {}
     _, pw = world_transforms(st.t_root_m, st.R_parent_segment, model.joint_offsets_m)
-    observed = np.zeros(N_SEGMENTS, bool)
-    observed[model.marker_segment[labeled & (model.marker_segment >= 0)]] = True
+    observed = _observed_segments(model.marker_segment, labeled)
     pool = np.flatnonzero(cand)
     if len(pool) == 0:
         return found
@@ -610,8 +616,9 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
     places the other markers. When the grandparent moved unseen too, the anchor is the first joint up the
     chain that an observed segment holds, and the joint must lie within the chain's length of it (a foot
     whose shank and thigh, one marker each, hid while the subject walked on hangs from the hip: 85_12 at
-    L3, where the stale knee and ankle were 40-65 cm off and the foot stayed unlabeled). Only markers that keep their layout on the segment take part, and only on
-    segments with four of them or more (one beyond the triangle to confirm it)."""
+    L3, where the stale knee and ankle were 40-65 cm off and the foot stayed unlabeled). Only markers that
+    keep their layout on the segment take part, and only on segments with four of them or more (one
+    beyond the triangle to confirm it)."""
     parent = PARENTS[k]
     if model.layout_rms_m is None or len(model.layout_rms_m) != model.n_markers:
         return []  # layouts unmeasured (a calibration saved before they were kept)
@@ -1013,8 +1020,7 @@ def step(
     searched = np.zeros(m, bool)  # found where the fit does not look: the fit's word on them is void
     if model.has_skeleton and st.skel_pred_m is not None and st.frames % SEARCH_EVERY_FRAMES == 0:
         seg = model.marker_segment
-        observed = np.zeros(N_SEGMENTS, bool)
-        observed[seg[labeled & (seg >= 0)]] = True
+        observed = _observed_segments(seg, labeled)
         lost = ~labeled & st.ever_seen & (st.hidden_frames >= SEARCH_LOST_FRAMES) & (seg >= 0)
         lost &= ~has_rigid | (spread0 > LOOSE_SPREAD_M) | ~observed[np.maximum(seg, 0)]
         if lost.any():
