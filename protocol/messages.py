@@ -139,6 +139,7 @@ class Status:
     points_received: int = 0  # points in processed frames
     points_invalid: int = 0  # NaN/inf points dropped by the engine
     points_labeled: int = 0  # points given a label
+    points_merged: int = 0  # points left unlabeled as a repeat of another within the engine's merge radius
 
     def as_dict(self) -> dict[str, Any]:
         """The status as a plain map (the payload without "v"; also the ``status`` command's reply)."""
@@ -426,6 +427,7 @@ def _decode_status(m: dict) -> Status:
         points_received=_key(m, "points_received", int, 0),
         points_invalid=_key(m, "points_invalid", int, 0),
         points_labeled=_key(m, "points_labeled", int, 0),
+        points_merged=_key(m, "points_merged", int, 0),
     )
 
 

@@ -181,6 +181,7 @@ class Daemon:
         self.points_received = 0
         self.points_invalid = 0
         self.points_labeled = 0
+        self.points_merged = 0
         self.rejected: collections.Counter[str] = collections.Counter()
         self._dropped_at_last_status = 0
         self._latency_s: collections.deque[float] = collections.deque(maxlen=LATENCY_WINDOW)
@@ -379,6 +380,7 @@ class Daemon:
         self.points_received += stats.n_points
         self.points_invalid += stats.n_invalid
         self.points_labeled += stats.n_labeled
+        self.points_merged += stats.n_merged
         done_ns = time.perf_counter_ns()
         self._latency_s.append((done_ns - received_ns) * 1e-9)
         self._step_s.append((done_ns - started_ns) * 1e-9)
@@ -422,6 +424,7 @@ class Daemon:
             points_received=self.points_received,
             points_invalid=self.points_invalid,
             points_labeled=self.points_labeled,
+            points_merged=self.points_merged,
         )
 
     # ----------------------------------------------------------------------------------------- control

@@ -21,6 +21,7 @@ import numpy as np
 from protocol.skeleton import PARENTS, SEGMENTS
 from recordings.recording import split_label
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
 
 from service import calibration, tracker
 from service.config import EngineConfig
@@ -68,6 +69,7 @@ class FrameStats:
     n_points: int  # points received
     n_invalid: int  # NaN/inf points dropped
     n_labeled: int  # points given a label by any subject
+    n_merged: int  # points left unlabeled as a repeat of another point (EngineConfig.merge_radius_m)
     new_subjects: tuple[str, ...]  # subjects created this frame (publish their skeleton description)
 
 
@@ -248,6 +250,8 @@ class Engine:
         points = pts[keep]
         labels = frame.labels if frame.labels is not None and len(frame.labels) == len(pts) else None
         free = np.ones(len(points), bool)
+        repeats = _repeats(points, self.config.merge_radius_m)
+        free[repeats] = False
         outputs: list[SubjectOutput] = []
         new_subjects: list[str] = []
         given: dict[str, dict[str, int]] = {}
@@ -283,7 +287,7 @@ class Engine:
         if self.config.tpose_auto and labels is None:
             new_subjects += self._find_tposes(frame, points, free)
         n_labeled = int(sum(int((o.point_index >= 0).sum()) for o in outputs))
-        return outputs, FrameStats(len(pts), n_invalid, n_labeled, tuple(new_subjects))
+        return outputs, FrameStats(len(pts), n_invalid, n_labeled, len(repeats), tuple(new_subjects))
 
     def _labeled_subject(self, frame, name, marks, points):
         s = self._subjects.get(name)
@@ -634,6 +638,15 @@ def refined_model(solver, model, hist, t0, R0, n_frames: int = 40, rounds: int =
     # marker that changed segment here loses its say
     layout = None if layout_rms_m is None else np.where(model.marker_segment == marker_segment0, layout_rms_m, np.nan)
     return dataclasses.replace(model, layout_rms_m=layout)
+
+
+def _repeats(points: np.ndarray, radius_m: float) -> np.ndarray:
+    """Indices of the points that repeat an earlier point of the frame within radius_m (of each close pair,
+    the later one): a marker reconstructed twice is one marker, and only one of its copies is labeled."""
+    if radius_m <= 0 or len(points) < 2:
+        return np.empty(0, int)
+    pairs = cKDTree(points).query_pairs(radius_m, output_type="ndarray")
+    return np.unique(pairs.max(1)) if len(pairs) else np.empty(0, int)
 
 
 def _positions(markers, marks: dict, points: np.ndarray) -> np.ndarray:

@@ -65,7 +65,7 @@ class FakeEngine:
                 np.zeros((m, 3), np.float32), True, 3, 0.001, np.zeros(3, np.float32),
                 np.tile(np.float32([0, 0, 0, 1]), (14, 1)), np.zeros((13, 3), np.float32)))
         n_invalid = int(np.sum(~np.isfinite(frame.points_m).all(axis=1)))
-        return outputs, FrameStats(len(frame.points_m), n_invalid, 0, tuple(new))
+        return outputs, FrameStats(len(frame.points_m), n_invalid, 0, 0, tuple(new))
 
     def complete(self, outputs):
         return outputs

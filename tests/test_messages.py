@@ -48,7 +48,7 @@ def _status() -> pm.Status:
     return pm.Status(
         t_ns=5, frames_received=10, frames_processed=8, frames_dropped=1, rejected={"bad_msgpack": 1},
         subjects=["Alice"], latency_ms={"p50": 1.5, "p99": 3.0, "max": 4.25}, ready=True, uptime_s=12.5,
-        catching_up=True, points_received=400, points_invalid=3, points_labeled=380,
+        catching_up=True, points_received=400, points_invalid=3, points_labeled=380, points_merged=2,
     )
 
 
