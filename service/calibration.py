@@ -217,6 +217,7 @@ def calibrate(
     # Markers out to the side above the knees are arm markers (T-pose or hanging arms alike): split them
     # between upper arm and forearm by how far along the arm they sit. The rest take the nearest bone.
     arm_cols = [S[n] for n in ("l_upperarm", "l_forearm", "r_upperarm", "r_forearm")]
+    bone_cost = cost.copy()
     cost[:, arm_cols] = np.inf
     marker_segment = np.argmin(np.nan_to_num(cost, nan=np.inf), axis=1)
     for side, sgn in (("l", 1.0), ("r", -1.0)):
@@ -227,7 +228,7 @@ def calibrate(
         )
         marker_segment[on_arm] = np.where(d_up[on_arm] < d_fore[on_arm], S[f"{side}_upperarm"], S[f"{side}_forearm"])
     if history_m is not None and len(history_m) >= 10:
-        marker_segment = _by_rigidity(marker_segment, cost, history_m)
+        marker_segment = _by_rigidity(marker_segment, cost, history_m, bone_cost)
     joints_world = np.stack([J[n] for n in SEGMENTS]) * h @ bf.R_world_body.T + bf.origin_m
     joint_offsets = np.zeros((len(SEGMENTS), 3))
     for i, p in enumerate(PARENTS):
@@ -244,35 +245,63 @@ def calibrate(
 # own segment's do not within MIN_UNSTEADY_M.
 MIN_UNSTEADY_M = 0.004
 JOINED_RATIO = 0.25
+STEADY_TIE = 1.5  # segments this close to the steadiest are told apart by their bones' distance
 
 
-def _by_rigidity(marker_segment: np.ndarray, cost: np.ndarray, history_m: np.ndarray, margin: float = 0.08) -> np.ndarray:
+def _by_rigidity(
+    marker_segment: np.ndarray, cost: np.ndarray, history_m: np.ndarray, bone_cost: np.ndarray | None = None, margin: float = 0.08
+) -> np.ndarray:
     """Reassign each marker among its plausible segments (bone cost within `margin` heights of the best,
     arm segments always plausible) to the one whose other markers keep the steadiest distances to it,
-    when the history moved enough to tell (the best choice is clearly steadier than the geometric one)."""
+    when the history moved enough to tell (the best choice is clearly steadier than the geometric one).
+
+    Markers move one at a time, the clearest case first, and each move changes the segments' members: hands
+    hanging at the hips sit in the pelvis's capsule, and until they leave it, the pelvis markers' distances
+    to them make the pelvis look unsteady to its own markers (a tennis player's ASIS/PSIS went to the thigh)."""
     d = np.stack([cdist(frame, frame) for frame in history_m])  # (F, M, M); 20x faster than broadcasting
     n = np.isfinite(d).sum(0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # pairs never seen together: all-NaN
         sd = np.where(n >= 10, np.nanstd(d, axis=0), np.nan)
-    out = marker_segment.copy()
+    m, n_seg = cost.shape
     best_cost = np.nanmin(np.where(np.isfinite(cost), cost, np.nan), axis=1)
-    for i in range(len(out)):
-        steadiness = {}
-        for k in range(cost.shape[1]):
-            plausible = cost[i, k] - best_cost[i] < margin or not np.isfinite(cost[i, k])
-            members = np.flatnonzero((marker_segment == k) & (np.arange(len(out)) != i))
-            vals = sd[i, members]
-            vals = vals[np.isfinite(vals)]
-            if plausible and len(vals) >= 1 and (np.isfinite(cost[i, k]) or k == out[i] or _is_arm(k)):
-                steadiness[k] = float(np.median(vals))
-        if out[i] in steadiness and steadiness:
-            k_best = min(steadiness, key=steadiness.get)
-            # two segments joined at a joint that hardly bent move as one: only clear evidence separates them
-            joined = PARENTS[k_best] == out[i] or PARENTS[out[i]] == k_best
-            ratio = JOINED_RATIO if joined else 0.5
-            if steadiness[k_best] < ratio * steadiness[out[i]] and steadiness[out[i]] > MIN_UNSTEADY_M:
-                out[i] = k_best
+    plausible = (cost - best_cost[:, None] < margin) | ~np.isfinite(cost)
+    candidate = plausible & (np.isfinite(cost) | np.array([_is_arm(k) for k in range(n_seg)])[None, :])
+
+    def steadiness_of(assignment):  # (M, S): median sd of each marker's distances to each segment's others
+        st = np.full((m, n_seg), np.nan)
+        for k in np.unique(assignment):
+            vals = np.where((assignment == k)[None, :] & ~np.eye(m, dtype=bool), sd, np.nan)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # no other member seen with it
+                st[:, k] = np.nanmedian(vals, axis=1)
+        return st
+
+    # a marker its segment's other markers left is judged by the segment's first members (a hand hanging by
+    # the thigh, once the thigh's markers went to the shank, is still told to go to the forearm)
+    first = steadiness_of(marker_segment)[np.arange(m), marker_segment]
+    out = marker_segment.copy()
+    moved = np.zeros(m, bool)
+    for _ in range(m):
+        steadiness = steadiness_of(out)
+        own = steadiness[np.arange(m), out]
+        own = np.where(np.isfinite(own), own, first)
+        options = np.where((candidate | (np.arange(n_seg)[None, :] == out[:, None])) & np.isfinite(steadiness), steadiness, np.inf)
+        k_best = np.argmin(options, axis=1)
+        if bone_cost is not None:
+            # segments about as steady as the steadiest (an elbow that hardly bent leaves upper arm and
+            # forearm alike): the nearest bone among them (a wrist hanging at the hip is forearm)
+            near = options <= STEADY_TIE * options[np.arange(m), k_best][:, None]
+            k_best = np.where(near.any(1), np.argmin(np.where(near, np.nan_to_num(bone_cost, nan=np.inf), np.inf), axis=1), k_best)
+        best = options[np.arange(m), k_best]
+        joined = np.array([PARENTS[kb] == o or PARENTS[o] == kb for kb, o in zip(k_best, out)])
+        ratio = np.where(joined, JOINED_RATIO, 0.5)
+        go = ~moved & np.isfinite(own) & (k_best != out) & (best < ratio * own) & (own > MIN_UNSTEADY_M)
+        if not go.any():
+            break
+        i = int(np.argmax(np.where(go, own / np.maximum(best, 1e-9), -np.inf)))  # the clearest case
+        out[i] = k_best[i]
+        moved[i] = True
     return out
 
 

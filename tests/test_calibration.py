@@ -257,3 +257,40 @@ def test_layout_residuals_tell_a_marker_that_slides_on_its_segment():
     res = layout_residuals(hist, seg, off)
     assert res[9] > 0.015 and res[:9].max() < 0.5 * res[9]
     assert np.isnan(layout_residuals(hist[:, :2], seg[:2], off[:2])).all()  # fewer than 3 markers: unmeasured
+
+
+def test_rigidity_moves_hands_off_the_pelvis_before_judging_the_pelvis_markers():
+    """Hands hanging at the hips sit in the pelvis's capsule. A pelvis marker's steadiness was the median
+    over all the pelvis's members, the swinging hand markers among them, so the pelvis looked unsteady to
+    its own markers and they left for the thigh (which hardly moved against them): a tennis player's ASIS
+    and PSIS. The hands move first now, and the pelvis markers stay. The hands go to the forearm, not to
+    the upper arm that swings with it as one (the elbow never bends), because the forearm's bone is nearer."""
+    from service.calibration import S, _by_rigidity
+
+    rng = np.random.default_rng(5)
+    pelvis = np.array([[0.1, 0.12, 1.0], [0.1, -0.12, 1.0], [-0.1, 0.05, 1.05], [-0.1, -0.05, 1.05]])
+    thigh = np.array([[0.05, 0.12, 0.75], [0.06, 0.13, 0.6]])
+    hand = np.array([[0.05, 0.2, 0.95], [0.02, 0.22, 0.94], [0.08, 0.21, 0.9]])  # wrist A/B, finger
+    forearm = np.array([[0.0, 0.2, 1.1], [0.01, 0.21, 1.2]])
+    upperarm = np.array([[0.0, 0.21, 1.3], [-0.01, 0.2, 1.35]])
+    hip, shoulder = np.array([0.0, 0.1, 0.95]), np.array([0.0, 0.2, 1.4])
+    noise = np.array([0.0005] * 9 + [0.0008] * 2 + [0.0005] * 2)[:, None]  # the forearm's markers wobble a little more
+    frames = []
+    for f in range(60):
+        swing = Rotation.from_rotvec([0.0, 0.5 * np.sin(f / 6.0), 0.0])  # the arm swings about the shoulder
+        flex = Rotation.from_rotvec([0.0, 0.02 * np.sin(f / 9.0), 0.0])  # the hip hardly bends
+        arm = swing.apply(np.vstack([hand, forearm, upperarm]) - shoulder) + shoulder
+        P = np.vstack([pelvis, flex.apply(thigh - hip) + hip, arm])
+        frames.append(P + rng.normal(0.0, 1.0, P.shape) * noise)
+    history = np.stack(frames)
+    geometric = np.array([S["pelvis"]] * 4 + [S["l_thigh"]] * 2 + [S["pelvis"]] * 3 + [S["l_forearm"]] * 2 + [S["l_upperarm"]] * 2)
+    bone_cost = np.full((len(geometric), N_SEGMENTS), 0.5)
+    bone_cost[np.arange(len(geometric)), geometric] = 0.0
+    bone_cost[:4, S["l_thigh"]] = 0.02  # the pelvis markers are close calls with the thigh
+    bone_cost[6:9, S["l_forearm"]], bone_cost[6:9, S["l_upperarm"]] = 0.01, 0.1  # the hand: at the forearm's end
+    cost = bone_cost.copy()
+    cost[:, [S["l_upperarm"], S["l_forearm"], S["r_upperarm"], S["r_forearm"]]] = np.inf  # arms: always plausible
+    got = [SEGMENTS[g] for g in _by_rigidity(geometric, cost, history, bone_cost)]
+    assert got[:4] == ["pelvis"] * 4
+    assert got[4:6] == ["l_thigh"] * 2
+    assert got[6:9] == ["l_forearm"] * 3
