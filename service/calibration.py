@@ -415,18 +415,31 @@ def world_transforms(t_root: np.ndarray, R_parent_segment: np.ndarray, joint_off
     return Rs, ps
 
 
+# `reassign` moves a marker only across a joint of its segment (its parent's or a child's), and only when
+# seen in REASSIGN_MIN_SHARE of the frames: the solved poses follow the engine's own labels, and a marker
+# mislabeled or hidden most of the window "stays most still" on any segment at all (a left heel went to the
+# right thigh). What refinement is for is a marker calibrated across the joint from its bone.
+REASSIGN_MIN_SHARE = 0.5
+REASSIGN_FAR_M = 0.01
+
+
 def reassign(positions_m: np.ndarray, Rs_world: np.ndarray, ps_world: np.ndarray, marker_segment: np.ndarray) -> np.ndarray:
     """Move each marker to the segment that carries it best over F solved frames: the segment in whose frame
-    the marker stays most still (RMS about its mean offset), if that is under 70 % of its current
-    segment's and the current one is off by more than 5 mm. Motion is what tells segments apart; in a still pose every choice fits, and none moves."""
+    the marker stays most still (RMS about its mean offset) among its own and those joined to it, if that
+    is under 70 % of its current segment's and the current one is off by more than 5 mm. Motion is what
+    tells segments apart; in a still pose every choice fits, and none moves."""
     local = np.einsum("fsji,fmsj->fmsi", Rs_world, positions_m[:, :, None, :] - ps_world[:, None, :, :])  # (F, M, S, 3)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # markers never seen in the window: all-NaN columns
         spread = np.sqrt(np.nanmean(np.sum((local - np.nanmean(local, axis=0)) ** 2, axis=3), axis=0))  # (M, S)
     out = marker_segment.copy()
     m = np.arange(len(out))
+    parents = np.array(PARENTS)
+    joined = (parents[None, :] == out[:, None]) | (parents[out][:, None] == np.arange(len(PARENTS))[None, :])
+    spread = np.where(joined | (np.arange(len(PARENTS))[None, :] == out[:, None]) | (spread < REASSIGN_FAR_M), spread, np.nan)
     best = np.nanargmin(np.where(np.isfinite(spread), spread, np.inf), axis=1)
     better = np.isfinite(spread[m, best]) & (spread[m, best] < 0.7 * spread[m, out]) & (spread[m, out] > 0.005)
+    better &= np.isfinite(positions_m[..., 0]).sum(0) >= REASSIGN_MIN_SHARE * len(positions_m)
     out[better] = best[better]
     return out
 

@@ -294,3 +294,30 @@ def test_rigidity_moves_hands_off_the_pelvis_before_judging_the_pelvis_markers()
     assert got[:4] == ["pelvis"] * 4
     assert got[4:6] == ["l_thigh"] * 2
     assert got[6:9] == ["l_forearm"] * 3
+
+
+def test_reassign_moves_a_marker_only_to_a_segment_that_carries_it():
+    """Refinement's reassignment: a hand marker calibrated onto the pelvis goes to the forearm that carries
+    it within millimetres (far across the body, but rigid with it); a heel whose labels wandered onto the
+    other leg does not go to that leg's thigh, which carries it no better than within centimetres; a marker
+    seen in a few frames of the window keeps its segment (a few frames fit any segment)."""
+    from service.calibration import S, reassign, world_transforms
+
+    rng = np.random.default_rng(2)
+    F = 30
+    R = Rotation.from_rotvec(rng.normal(0.0, 0.4, (F * N_SEGMENTS, 3))).as_matrix().reshape(F, N_SEGMENTS, 3, 3)
+    joints = rng.normal(0.0, 0.2, (N_SEGMENTS, 3))
+    Rs, ps = world_transforms(rng.normal(0.0, 1.0, (F, 3)), R, joints)
+
+    def on(seg, offset, noise_m):
+        return ps[:, seg] + np.einsum("fij,j->fi", Rs[:, seg], offset) + rng.normal(0.0, noise_m, (F, 3))
+
+    hand = on(S["l_forearm"], np.array([0.0, 0.02, -0.25]), 0.001)
+    heel = on(S["r_thigh"], np.array([0.03, 0.0, -0.2]), 0.02)  # its labels wandered onto the other leg ...
+    heel[::5] = on(S["l_foot"], np.array([-0.05, 0.0, -0.05]), 0.001)[::5]  # ... and came back now and then
+    glimpsed = np.full((F, 3), np.nan)
+    glimpsed[:4] = on(S["r_shank"], np.array([0.04, 0.0, -0.1]), 0.0005)[:4]
+    positions = np.stack([hand, heel, glimpsed], axis=1)
+    current = np.array([S["pelvis"], S["l_foot"], S["l_foot"]])
+    got = [SEGMENTS[k] for k in reassign(positions, Rs, ps, current)]
+    assert got == ["l_forearm", "l_foot", "l_foot"]
