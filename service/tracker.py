@@ -102,6 +102,7 @@ SHAPE_TRUSTED_SHARE = 0.3  # ... at least this, over more than SHAPE_MIN_CHECKS 
 SHAPE_MIN_CHECKS = 5
 SHAPE_MAX_JUMP_M = 0.3  # ... and only relabellings that move no label farther than this (heel to toe: ~25 cm) ...
 SHAPE_MAX_HANDOVER_M = 0.2  # ... nor hand a label to an unlabeled marker farther than this from where it was
+SHAPE_MIN_LABELED = 2  # segments with this many labeled markers are checked (two: their distance, against a spare marker's)
 SHAPE_ALL_MAPS = 5  # segments with up to this many labels try every permutation of them, larger ones every swap
 PROBATION_FRAMES = 60  # frames a re-acquired label is re-checked against the partners' long-run distances
 CHECK_RESIDUAL_M = 0.006  # a tracked label this far [m] (+10 % of the step) from its prediction is checked
@@ -735,7 +736,7 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     layout = model.layout_offsets_m
     slots = st.ever_seen & (seg >= 0) & (model.layout_rms_m < SHAPE_LAYOUT_TOL_M)  # NaN compares False
     counts = np.bincount(seg[labeled & slots], minlength=int(seg.max()) + 1)
-    ks = np.flatnonzero(counts >= 3)
+    ks = np.flatnonzero(counts >= SHAPE_MIN_LABELED)
     if len(ks) == 0:
         return changed
     groups = [np.flatnonzero(labeled & slots & (seg == k)) for k in ks]

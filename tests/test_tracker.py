@@ -318,6 +318,33 @@ def test_a_re_acquired_label_on_a_hidden_neighbours_point_is_handed_to_it():
     assert (np.delete(idx, [a, b]) == np.delete(np.arange(m), [a, b])).all()
 
 
+def test_with_one_other_label_in_view_a_re_acquired_label_is_handed_by_their_distance():
+    """Two of a forearm's four markers in view: the forearm marker, and a wrist label re-acquired on the
+    finger marker's point. Two labeled points still tell their distance (22 cm, where the layout has 15 cm
+    for these labels and 22 cm to the finger), so the point is handed to the finger marker. Segments with
+    two labels were never checked: a toe label on a tennis player's ankle point stayed 270 frames."""
+    from protocol.skeleton import SEGMENTS
+
+    perf = perform(3, duration_s=0.1)
+    m = len(perf.marker_names)
+    fore = np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
+    assert [perf.marker_names[i] for i in fore] == ["RFRM", "RWRA", "RWRB", "RFIN"]
+    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
+                                 perf.joint_offsets_m, True, layout_offsets_m=perf.marker_offsets_m,
+                                 layout_rms_m=np.full(m, 0.002))
+    points = perf.recording.points_m[0]
+    st = tracker.new_state(model, points, t_ns(0))
+    st.shape_fit[:], st.shape_checks[:] = 1.0, 10
+    a, b = fore[1], fore[3]  # RWRA on RFIN's point; RWRB and RFIN unlabeled
+    idx = np.arange(m)
+    idx[a], idx[b], idx[fore[2]] = b, -1, -1
+    st.provisional[a] = tracker.PROBATION_FRAMES
+    for _ in range(tracker.SHAPE_CONFIRM):
+        cur = np.where(idx[:, None] >= 0, points[np.maximum(idx, 0)], np.nan)
+        changed = tracker._relabel_by_shape(model, st, points, idx, cur)
+    assert idx[b] == b and idx[a] == -1 and idx[fore[2]] == -1 and set(np.flatnonzero(changed)) == {a, b}
+
+
 def run_tracker(points_m: np.ndarray, seed_frames: int, shuffle_seed: int = 0, ghosts_m=None):
     """Seed, then step every later frame with the points shuffled; returns per frame the true marker each
     marker slot was given (-1 = none, -2 = a ghost)."""
