@@ -169,7 +169,7 @@ def calibrate(
     for side, s in (("l", 1.0), ("r", -1.0)):
         sh = np.array([0.0, s * _SHOULDER_Y, _SHOULDER_Z])
         ok = np.isfinite(Q[:, 0]) & (Q[:, 2] > 0.3)
-        arm = Q[ok & ((s * Q[:, 1] > _SHOULDER_Y + 0.03) | ((s * Q[:, 1] > 0.09) & (np.linalg.norm(Q - sh, axis=1) < 0.5)))]
+        arm = Q[ok & ((s * Q[:, 1] > _SHOULDER_Y + 0.03) | ((s * Q[:, 1] > 0.09) & (np.linalg.norm(Q - sh, axis=1) < _UPPERARM + _FOREARM_HAND)))]
         # the elbow: toward the markers about one upper-arm length from the shoulder; the hand: the
         # farthest arm marker. Straight arms (T-pose, hanging) and bent ones alike.
         r = np.linalg.norm(arm - sh, axis=1) if len(arm) else np.zeros(0)

@@ -321,3 +321,31 @@ def test_reassign_moves_a_marker_only_to_a_segment_that_carries_it():
     current = np.array([S["pelvis"], S["l_foot"], S["l_foot"]])
     got = [SEGMENTS[k] for k in reassign(positions, Rs, ps, current)]
     assert got == ["l_forearm", "l_foot", "l_foot"]
+
+
+def test_a_tennis_players_seed_puts_pelvis_thigh_and_hand_markers_on_their_segments():
+    """Real data: Derrick's 2 s seed in the two-player tennis recording (benchmark corruption L2, seed 1),
+    hands hanging at the hips. The mid-thigh marker, 46 % of his height below the shoulder, was taken for
+    the hand (out of an arm's reach: 44 %), the forearm pointed at it, and the wrists and finger went to
+    the pelvis and thigh, whose own markers then looked unsteady and left for the thigh and shank."""
+    from recordings.c3d import read_c3d
+    from recordings.corruption import corrupt
+    from tests.conftest import data_path
+
+    seq = corrupt(read_c3d(data_path("kineticstoolkit/kinematics_tennis_serve_2players.c3d")), "L2", 1)
+    names = [n for n in seq.marker_names if n.startswith("Derrick:")]
+    index = {seq.marker_names.index(n): k for k, n in enumerate(names)}
+    n_seed = int(round(2.0 * seq.rate_hz))
+    history = np.full((n_seed, len(names), 3), np.nan)
+    for f in range(n_seed):
+        if seq.points_m[f] is None:
+            continue
+        for p, t in zip(seq.points_m[f], seq.truth[f]):
+            if int(t) in index:
+                history[f, index[int(t)]] = p
+    history = history[np.isfinite(history[..., 0]).any(1)]
+    ref = fill_reference(history)
+    got = dict(zip((n.split(":")[1] for n in names), (SEGMENTS[k] for k in calibrate(ref, history)[0])))
+    want = {"LASI": "pelvis", "LPSI": "pelvis", "RASI": "pelvis", "RPSI": "pelvis", "LTHI": "l_thigh",
+            "LWRA": "l_forearm", "LWRB": "l_forearm", "LFIN": "l_forearm", "LFRM": "l_forearm"}
+    assert {k: got[k] for k in want} == want
