@@ -323,17 +323,15 @@ def test_reassign_moves_a_marker_only_to_a_segment_that_carries_it():
     assert got == ["l_forearm", "l_foot", "l_foot"]
 
 
-def test_a_tennis_players_seed_puts_pelvis_thigh_and_hand_markers_on_their_segments():
-    """Real data: Derrick's 2 s seed in the two-player tennis recording (benchmark corruption L2, seed 1),
-    hands hanging at the hips. The mid-thigh marker, 46 % of his height below the shoulder, was taken for
-    the hand (out of an arm's reach: 44 %), the forearm pointed at it, and the wrists and finger went to
-    the pelvis and thigh, whose own markers then looked unsteady and left for the thigh and shank."""
+def _seed_calibration(file: str, subject: str, level: str, seed: int) -> dict[str, str]:
+    """{marker: segment} of a subject calibrated from the 2 s seed of a real recording (benchmark corruption),
+    the labeled history the engine calibrates from."""
     from recordings.c3d import read_c3d
     from recordings.corruption import corrupt
     from tests.conftest import data_path
 
-    seq = corrupt(read_c3d(data_path("kineticstoolkit/kinematics_tennis_serve_2players.c3d")), "L2", 1)
-    names = [n for n in seq.marker_names if n.startswith("Derrick:")]
+    seq = corrupt(read_c3d(data_path(file)), level, seed)
+    names = [n for n in seq.marker_names if n.startswith(subject + ":")]
     index = {seq.marker_names.index(n): k for k, n in enumerate(names)}
     n_seed = int(round(2.0 * seq.rate_hz))
     history = np.full((n_seed, len(names), 3), np.nan)
@@ -344,8 +342,23 @@ def test_a_tennis_players_seed_puts_pelvis_thigh_and_hand_markers_on_their_segme
             if int(t) in index:
                 history[f, index[int(t)]] = p
     history = history[np.isfinite(history[..., 0]).any(1)]
-    ref = fill_reference(history)
-    got = dict(zip((n.split(":")[1] for n in names), (SEGMENTS[k] for k in calibrate(ref, history)[0])))
+    segments = calibrate(fill_reference(history), history)[0]
+    return dict(zip((n.split(":")[1] for n in names), (SEGMENTS[k] for k in segments)))
+
+
+def test_a_tennis_players_seed_puts_pelvis_thigh_and_hand_markers_on_their_segments():
+    """Real data: Derrick's 2 s seed in the two-player tennis recording (benchmark corruption L2, seed 1),
+    hands hanging at the hips. The mid-thigh marker, 46 % of his height below the shoulder, was taken for
+    the hand (out of an arm's reach: 44 %), the forearm pointed at it, and the wrists and finger went to
+    the pelvis and thigh, whose own markers then looked unsteady and left for the thigh and shank."""
+    got = _seed_calibration("kineticstoolkit/kinematics_tennis_serve_2players.c3d", "Derrick", "L2", 1)
     want = {"LASI": "pelvis", "LPSI": "pelvis", "RASI": "pelvis", "RPSI": "pelvis", "LTHI": "l_thigh",
             "LWRA": "l_forearm", "LWRB": "l_forearm", "LFIN": "l_forearm", "LFRM": "l_forearm"}
     assert {k: got[k] for k in want} == want
+
+
+def test_an_upper_arm_marker_beside_the_chest_is_upper_arm():
+    """Real data, as recorded (cmu_02_05, L0): the left upper-arm marker of an arm held against the body
+    lies 4.5-6 % of height from the estimated upper-arm bone, and went to the torso."""
+    got = _seed_calibration("cmu/cmu_02_05.c3d", "TakeoMonday", "L0", 0)
+    assert got["LUPA"] == "l_upperarm" and got["RUPA"] == "r_upperarm"
