@@ -38,8 +38,9 @@ _KNEE_Z, _ANKLE_Z = 0.285, 0.045
 _FOOT_FWD = 0.11
 _PELVIS_RISE = 0.04  # the pelvis's bone across the hips runs this far above the hip joints
 # a marker inside the shoulders' width is an arm marker within this of the estimated arm bones (an upper-arm
-# marker of an arm held against the chest sat 0.045-0.06 from them and went to the torso)
-_ARM_BONE_REACH = 0.06
+# marker of an arm held against the chest sat 0.045-0.06 from them and went to the torso); above the
+# shoulder joint, less (the acromion marker rides the shoulder girdle, which the torso carries)
+_ARM_BONE_REACH, _ARM_BONE_REACH_TOP = 0.06, 0.045
 # Capsule radius of each segment [fraction of height] for the nearest-bone assignment. The abdomen is
 # narrower than the pelvis (at 0.08 it took the four waist markers of the CMU set, leaving the root none).
 _RADIUS = {
@@ -227,7 +228,7 @@ def calibrate(
         sh, el, tip = J[f"{side}_upperarm"], J[f"{side}_forearm"], tips[f"{side}_forearm"]
         d_up, d_fore = _seg_dist(Q, sh, el), _seg_dist(Q, el, tip)
         on_arm = np.isfinite(Q[:, 0]) & (Q[:, 2] > 0.3) & (
-            (sgn * Q[:, 1] > _SHOULDER_Y + 0.03) | ((sgn * Q[:, 1] > 0.09) & (np.minimum(d_up, d_fore) < _ARM_BONE_REACH))
+            (sgn * Q[:, 1] > _SHOULDER_Y + 0.03) | ((sgn * Q[:, 1] > 0.09) & (np.minimum(d_up, d_fore) < np.where(Q[:, 2] > _SHOULDER_Z, _ARM_BONE_REACH_TOP, _ARM_BONE_REACH)))
         )
         marker_segment[on_arm] = np.where(d_up[on_arm] < d_fore[on_arm], S[f"{side}_upperarm"], S[f"{side}_forearm"])
     if history_m is not None and len(history_m) >= 10:
