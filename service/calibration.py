@@ -224,11 +224,12 @@ def calibrate(
     bone_cost = cost.copy()
     cost[:, arm_cols] = np.inf
     marker_segment = np.argmin(np.nan_to_num(cost, nan=np.inf), axis=1)
+    reach = np.where(Q[:, 2] > _SHOULDER_Z, _ARM_BONE_REACH_TOP, _ARM_BONE_REACH)
     for side, sgn in (("l", 1.0), ("r", -1.0)):
         sh, el, tip = J[f"{side}_upperarm"], J[f"{side}_forearm"], tips[f"{side}_forearm"]
         d_up, d_fore = _seg_dist(Q, sh, el), _seg_dist(Q, el, tip)
         on_arm = np.isfinite(Q[:, 0]) & (Q[:, 2] > 0.3) & (
-            (sgn * Q[:, 1] > _SHOULDER_Y + 0.03) | ((sgn * Q[:, 1] > 0.09) & (np.minimum(d_up, d_fore) < np.where(Q[:, 2] > _SHOULDER_Z, _ARM_BONE_REACH_TOP, _ARM_BONE_REACH)))
+            (sgn * Q[:, 1] > _SHOULDER_Y + 0.03) | ((sgn * Q[:, 1] > 0.09) & (np.minimum(d_up, d_fore) < reach))
         )
         marker_segment[on_arm] = np.where(d_up[on_arm] < d_fore[on_arm], S[f"{side}_upperarm"], S[f"{side}_forearm"])
     if history_m is not None and len(history_m) >= 10:
@@ -419,19 +420,21 @@ def world_transforms(t_root: np.ndarray, R_parent_segment: np.ndarray, joint_off
     return Rs, ps
 
 
-# `reassign` moves a marker only across a joint of its segment (its parent's or a child's), and only when
+# `reassign` moves a marker across a joint of its segment (to its parent or a child), or farther only to a
+# segment that carries it within REASSIGN_FAR_M (a hand calibrated onto the pelvis), and only when it was
 # seen in REASSIGN_MIN_SHARE of the frames: the solved poses follow the engine's own labels, and a marker
-# mislabeled or hidden most of the window "stays most still" on any segment at all (a left heel went to the
-# right thigh). What refinement is for is a marker calibrated across the joint from its bone.
+# mislabeled or hidden most of the window "stays most still" on some segment or other (a left heel whose
+# labels wandered went to the right thigh).
 REASSIGN_MIN_SHARE = 0.5
 REASSIGN_FAR_M = 0.01
 
 
 def reassign(positions_m: np.ndarray, Rs_world: np.ndarray, ps_world: np.ndarray, marker_segment: np.ndarray) -> np.ndarray:
     """Move each marker to the segment that carries it best over F solved frames: the segment in whose frame
-    the marker stays most still (RMS about its mean offset) among its own and those joined to it, if that
-    is under 70 % of its current segment's and the current one is off by more than 5 mm. Motion is what
-    tells segments apart; in a still pose every choice fits, and none moves."""
+    the marker stays most still (RMS about its mean offset) among its own, those joined to it and those that
+    carry it within REASSIGN_FAR_M, if that is under 70 % of its current segment's and the current one is
+    off by more than 5 mm. Motion is what tells segments apart; in a still pose every choice fits, and
+    none moves."""
     local = np.einsum("fsji,fmsj->fmsi", Rs_world, positions_m[:, :, None, :] - ps_world[:, None, :, :])  # (F, M, S, 3)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # markers never seen in the window: all-NaN columns

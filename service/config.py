@@ -50,9 +50,8 @@ class EngineConfig:
     """Frames a T-pose candidate must hold still before a subject is created from it."""
     merge_radius_m: float = 0.005
     """Points closer than this [m] are one marker reconstructed twice (two camera sets' rays, an exporter's
-    copy): only one of them is labeled. Body markers never come this close (their centres lie a diameter apart,
-    6-25 mm); lower it for facial markers spaced closer than that, 0 keeps
-    every point."""
+    copy): only one of them is labeled. Body markers never come this close (their centres lie a diameter
+    apart, 6-25 mm); lower it for facial markers spaced closer than that; 0 keeps every point."""
     max_points: int = 4096
     """Frames with more points are rejected as malformed (a capture volume never sees that many)."""
 
