@@ -252,7 +252,8 @@ class Daemon:
         # collector again, so its pauses stay short...
         gc.collect()
         gc.freeze()
-        # ... and the frame loop gets the GIL back from the refinement worker within 1 ms, not Python's 5 ms.
+        # ... and the frame loop gets the GIL back within 1 ms, not Python's 5 ms, from the threads that
+        # pickle the helper process's jobs and results (`service.worker`).
         sys.setswitchinterval(0.001)
 
     def _state_dir(self) -> Path:

@@ -9,9 +9,9 @@ subject claimed this frame so no point gets two labels.
 from __future__ import annotations
 
 import collections
-import concurrent.futures
 import dataclasses
 import json
+import logging
 import statistics
 import time
 from pathlib import Path
@@ -23,10 +23,12 @@ from recordings.recording import split_label
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from service import calibration, tracker
+from service import calibration, tracker, worker
 from service.config import EngineConfig
 from service.kinematics import joint_angles, matrix_to_quat_xyzw
 from service.solver import PoseSolver
+
+log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,13 +147,19 @@ class Engine:
         self._candidates: dict[str, _TposeCandidate] = {}
         self._clocks: dict[str, _StreamClock] = {}
         self._auto_count = 0
-        self._executor: concurrent.futures.ThreadPoolExecutor | None = None
+        # what a helper process needs to build the same solver (`refined_model`)
+        self._solver_spec = (config.max_markers, config.solver_max_steps, config.solver_rtol, config.prior_weight, config.solver_atol)
 
     # ---------------------------------------------------------------- lifecycle
     def warm_up(self) -> float:
         """Compile the jitted solve and FK for every padded size (or load them from the persistent cache)."""
         t0 = time.perf_counter()
+        helper = self._worker().submit(_warm_solver, self._solver_spec)  # the helper process compiles beside us
         self.solver.warm_up()
+        try:
+            helper.result()
+        except worker.WorkerError as e:  # it is started again with the next job; refinements wait on it then
+            log.warning("the helper process could not warm up: %s", e)
         return time.perf_counter() - t0
 
     def subjects(self) -> list[str]:
@@ -323,7 +331,7 @@ class Engine:
 
     def _maybe_calibrate(self, s: _Subject, frame) -> None:
         """Fit a skeleton once an upright pose is in the labeled history; retry every second if not. The
-        work (50-300 ms, more with many markers) runs on the worker thread, like refinement, and takes
+        work (50-300 ms, more with many markers) runs in the helper process (`service.worker`), like refinement, and takes
         effect CALIBRATE_APPLY_FRAMES frames after it started (waiting for it then if need be): the frame
         loop does not stall on it, and `label` and the daemon give the same labels."""
         if s.calibration_job is not None:
@@ -331,7 +339,7 @@ class Engine:
             if s.state.frames < apply_at:
                 return
             s.calibration_job = None
-            result = future.result()
+            result = _result(future, "calibration")
             if result is None or len(result[0]) != len(s.model.markers):
                 return
             seg, off, joints, t_root, R, layout = result
@@ -356,7 +364,7 @@ class Engine:
         """Re-align the skeleton to the recent labeled history when it fits the markers poorly (the
         calibration pose hid the joints: a joint shows where it is only when it bends).
 
-        The work (0.1-0.5 s) runs on a worker thread, off the frame loop, and its result is applied exactly
+        The work (0.1-0.5 s) runs in the helper process (`service.worker`), off the frame loop, and its result is applied exactly
         REFINE_APPLY_FRAMES frames after it was started — waiting for it then if need be — so the daemon
         never stalls and `mocap-service label` gives the same labels as the daemon, frame for frame.
         Intervals double after each refinement (backoff) so a subject whose markers wobble on the skin
@@ -367,7 +375,7 @@ class Engine:
             if st.frames < apply_at:
                 return
             s.refine_job = None
-            model = future.result()
+            model = _result(future, "refinement")
             if model is not None and len(model.markers) == len(s.model.markers):
                 s.model = model
                 last = s.history[-1]
@@ -378,13 +386,11 @@ class Engine:
         s.refine_interval = min(2 * s.refine_interval, 20 * REFINE_EVERY_FRAMES) if s.refine_interval else REFINE_EVERY_FRAMES
         s.next_refine_frame = st.frames + s.refine_interval
         hist = np.stack(s.history)
-        job = self._worker().submit(refined_model, self.solver, s.model, hist, st.t_root_m.copy(), st.R_parent_segment.copy())
+        job = self._worker().submit(refined_model, self._solver_spec, s.model, hist, st.t_root_m.copy(), st.R_parent_segment.copy())
         s.refine_job = (job, st.frames + REFINE_APPLY_FRAMES)
 
     def _worker(self):
-        if self._executor is None:
-            self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="mocap-refine")
-        return self._executor
+        return worker.shared()
 
     def _find_tposes(self, frame, points, free) -> list[str]:
         """Automatic initialisation: T-pose groups tracked still for a window become subjects."""
@@ -590,7 +596,7 @@ class Engine:
 
 def _calibrated(hist: np.ndarray):
     """(marker_segment, marker_offsets, joint_offsets, t_root, R) of a skeleton calibrated from labeled
-    history (F, M, 3), or None if it shows no usable pose. Pure, for the worker thread."""
+    history (F, M, 3), or None if it shows no usable pose. Pure, for the helper process."""
     ref = calibration.fill_reference(hist)
     ok = np.isfinite(ref[:, 0])
     try:
@@ -602,11 +608,38 @@ def _calibrated(hist: np.ndarray):
     return seg, off, joints, t_root, R, calibration.layout_residuals(hist, seg, off)
 
 
+def _result(future, what: str):
+    """A helper-process job's result, or None (logged) if the helper failed it: the subject goes on with the
+    skeleton it has, and the job is tried again on schedule."""
+    try:
+        return future.result()
+    except worker.WorkerError as e:
+        log.warning("%s failed in the helper process: %s", what, e)
+        return None
+
+
+_SOLVERS: dict[tuple, PoseSolver] = {}
+
+
+def _solver(spec: tuple) -> PoseSolver:
+    """The PoseSolver(*spec) of this (helper) process, built and compiled once."""
+    if spec not in _SOLVERS:
+        _SOLVERS[spec] = PoseSolver(*spec)
+    return _SOLVERS[spec]
+
+
+def _warm_solver(spec: tuple) -> None:
+    _solver(spec).warm_up()
+
+
 def refined_model(solver, model, hist, t0, R0, n_frames: int = 40, rounds: int = 2):
     """A better skeleton for `model` from labeled history (F, M, 3): poses of up to n_frames frames are
     solved with the current model, markers move to the segment that carries them best, then the least-
-    squares alignment gives new offsets; twice. Pure (no engine state), so it can run on a worker thread.
-    None if the history is too thin."""
+    squares alignment gives new offsets; twice. Pure (no engine state), so it can run in the helper process.
+    None if the history is too thin. `solver`: a PoseSolver, or the arguments that build one (in the helper
+    process, which has its own)."""
+    if isinstance(solver, tuple):
+        solver = _solver(solver)
     good = np.flatnonzero(np.isfinite(hist[..., 0]).sum(1) >= 8)
     good = good[good >= len(hist) - 3 * n_frames]  # the recent past: it shows the motion that calls for this
     if len(good) < 12:

@@ -6,6 +6,7 @@ test's comment), so a regression fails them."""
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 
 import numpy as np
@@ -16,6 +17,7 @@ from recordings.c3d import read_c3d
 from recordings.corruption import CorruptedSequence, corrupt
 from recordings.synthetic import multi_perform, perform
 from service.config import EngineConfig
+from service import worker
 from service.engine import Engine, EngineError, FrameInput
 from tests.conftest import data_path
 
@@ -408,6 +410,29 @@ def test_reset_removes_and_unknown_names_list_the_valid_ones():
         engine.describe("Performer")
     engine2, _ = tracked_engine()
     assert engine2.reset() == ["Performer"] and engine2.subjects() == []
+
+
+class _FailingHelper:
+    """A helper process that fails every job, as a dead one does (its real failures: tests/test_worker.py)."""
+
+    def submit(self, fn, *args):
+        future = concurrent.futures.Future()
+        future.set_exception(worker.WorkerError("the helper process exited (status -9)"))
+        return future
+
+
+def test_a_subject_is_tracked_on_while_the_helper_process_fails_and_calibrated_once_it_is_back(monkeypatch):
+    seq = corrupt(perform(10, duration_s=6.0).recording, "L0", 10)
+    engine = Engine(EngineConfig(tpose_auto=False))
+    monkeypatch.setattr(worker, "shared", lambda: _FailingHelper())
+    head = CorruptedSequence(seq.points_m[:480], seq.truth[:480], seq.marker_names, seq.rate_hz)
+    given = run(head, engine)  # the calibrations started at 240 and 360 fail
+    assert not engine.describe("Performer")["has_skeleton"]
+    assert score(head, given, "seeded", head.seed_frames).accuracy > 0.99  # labeled on, by its rigid partners
+    monkeypatch.undo()
+    s = continue_score(engine, seq, 480)
+    assert engine.describe("Performer")["has_skeleton"]
+    assert s.accuracy > 0.99
 
 
 def test_warm_up_returns_seconds():
