@@ -542,8 +542,6 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
         reach = _norm(points[pool] - o)
         within = reach < _norm(off[idx]).max() + SEARCH_JOINT_TOL_M
         near, r_near = pool[within], reach[within]
-        if len(near) == 0:
-            continue
         options = {i: near[np.abs(r_near - _norm(off[i])) < SEARCH_JOINT_TOL_M] for i in los}
         base_a = np.vstack([np.zeros((1, 3)), off[lab]])
         base_b = np.vstack([o[None], cur[lab]])
@@ -571,14 +569,14 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
             if len(set(assignment.values())) < len(assignment):
                 continue
             scored.append((len(assignment), float(np.sqrt(np.mean(res**2))), assignment))
-        margin, least = 0, 3
-        if not scored or max(n for n, _, _ in scored) < 3:
-            scored = _search_free_segment(model, pw, points, pool, los, k, observed) if len(lab) == 0 else []
-            # no joint to pin it: a rival placing one marker fewer makes it ambiguous too, and three
-            # markers alone are only the triangle matched (a foot's three were once matched to two of
-            # them and the shank's marker: HDM05 at L3, T-pose mode)
-            margin, least = 1, 4
-        assignment = _unambiguous(scored, margin, least)
+        assignment = _unambiguous(scored, 0, 3)
+        if assignment is None and len(lab) == 0:
+            # the joint could not pin it (its parent moved unseen too, so the joint is where the fit left
+            # it: a serving arm's forearm stayed unfound for 0.7 s): its layout alone. No joint to pin it:
+            # a rival placing one marker fewer makes it ambiguous too, and three markers alone are only the
+            # triangle matched (a foot's three were once matched to two of them and the shank's marker:
+            # HDM05 at L3, T-pose mode)
+            assignment = _unambiguous(_search_free_segment(model, pw, points, pool, los, k, observed), 1, 4)
         if assignment:
             found.update(assignment)
             pool = pool[~np.isin(pool, list(assignment.values()))]

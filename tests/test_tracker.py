@@ -222,6 +222,28 @@ def test_a_forearm_whose_upper_arm_swung_too_is_found_by_its_layout():
     assert tracker._search_segments(model, st, far, far_free, labeled, cur, arm) == {}
 
 
+def test_a_forearm_swung_out_of_reach_of_where_the_fit_left_its_elbow_is_found_by_its_layout():
+    """The arm swung far while its forearm was unlabeled (a serve), and the fit still holds the elbow where
+    it was: not one free point lies within the forearm's reach of that joint, so the search around it has
+    nothing to try. The layout search must still run (it did not: a tennis player's serving forearm stayed
+    unlabeled for 0.7 s, in view)."""
+    from protocol.skeleton import SEGMENTS
+    from service.calibration import world_transforms
+
+    rng = np.random.default_rng(4)
+    turns = {"r_upperarm": ("x", 150), "r_forearm": ("y", 60)}
+    perf, model, st, old, now, _ = _turned_unseen(rng, turns, measured_layouts=True)
+    on_forearm = perf.marker_segment == SEGMENTS.index("r_forearm")
+    elbow = world_transforms(st.t_root_m, st.R_parent_segment, model.joint_offsets_m)[1][SEGMENTS.index("r_forearm")]
+    reach = np.linalg.norm(model.marker_offsets_m[on_forearm], axis=1).max() + tracker.SEARCH_JOINT_TOL_M
+    assert np.linalg.norm(now[on_forearm] - elbow, axis=1).min() > reach
+    labeled = ~on_forearm
+    cur = np.where(labeled[:, None], now, np.nan)
+
+    found = tracker._search_segments(model, st, now, on_forearm, labeled, cur, on_forearm)
+    assert found == {int(i): int(i) for i in np.flatnonzero(on_forearm)}
+
+
 def test_kabsch_rms_matches_a_kabsch_by_svd():
     """The closed-form misfit equals the residual of scipy's best rotation, masked points left out."""
     rng = np.random.default_rng(4)
