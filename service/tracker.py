@@ -92,10 +92,20 @@ SEARCH_INLIER_M = 0.012  # ... and a marker with a point this close to where the
 SEARCH_BONE_TOL_M = 0.05
 SHAPE_EVERY_FRAMES = 4  # segment layouts are checked on every this many frames
 SHAPE_LAYOUT_TOL_M = 0.02  # only markers that kept their offset in their segment this well [m] take part ...
-SHAPE_MIN_RMS_M = 0.012  # a segment whose labels fit its calibrated marker layout this well is not re-checked
+SHAPE_MIN_RMS_M = 0.012  # a segment whose labels fit its calibrated marker layout this well is not re-checked ...
+SHAPE_FIT_FLOOR_M = 0.004  # ... nor one fitting it within 4x its markers' own layout residual (not under this)
 SHAPE_GAIN = 0.5  # labels of a segment are permuted when that fits its layout under this times as badly ...
 SHAPE_GOOD_RMS_M = 0.015  # ... and as well as true labels do [m] RMS
-SHAPE_DISTINCT_M = 0.03  # ... and only relabellings that move the layout's own markers this far [m] RMS
+SHAPE_DISTINCT_M = 0.03  # ... and only relabellings that move the layout's own markers this far [m] RMS ...
+# ... or, on clear evidence, one that moves them at least SHAPE_CLEAR_MIN_M: a segment of SHAPE_CLEAR_MIN_LABELS
+# labels or more whose layout held within SHAPE_CLEAR_LAYOUT_M in calibration, its labels misfitting by
+# SHAPE_CLEAR_SHARE of that move or more, the relabelled ones fitting within SHAPE_CLEAR_FIT_M (or twice the
+# layout's residual), and no other relabelling within twice that + 1 mm
+SHAPE_CLEAR_MIN_M = 0.006
+SHAPE_CLEAR_MIN_LABELS = 3
+SHAPE_CLEAR_LAYOUT_M = 0.0025
+SHAPE_CLEAR_SHARE = 0.6
+SHAPE_CLEAR_FIT_M = 0.002
 SHAPE_CONFIRM = 2  # ... when the same relabelling wins this many checks running
 SHAPE_FIT_ALPHA = SHAPE_EVERY_FRAMES / 200  # the share of checks (over ~200 frames) on which a segment's labels fit its layout, a running mean ...
 SHAPE_TRUSTED_SHARE = 0.3  # ... at least this, over more than SHAPE_MIN_CHECKS checks, for its layout to be trusted
@@ -750,9 +760,14 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     for r, g in enumerate(groups):
         A[r, : len(g)], B[r, : len(g)], w[r, : len(g)] = layout[g], cur[g], True
     rms0 = _kabsch_rms(A, B, w)
-    for k in ks[rms0 <= SHAPE_MIN_RMS_M]:
+    # a segment fits when its labels sit about as well as they did in calibration: a few times its markers'
+    # own layout residual (1-2 mm on a foot), and never worse than SHAPE_MIN_RMS_M. A fixed 12 mm let a toe
+    # label on the fifth metatarsal's point pass (10 mm, 85_12 at L2) for 1.6 s.
+    typical = np.array([np.sqrt(np.mean(model.layout_rms_m[g] ** 2)) for g in groups])
+    tol = np.minimum(SHAPE_MIN_RMS_M, np.maximum(SHAPE_FIT_FLOOR_M, 4.0 * typical))
+    for k in ks[rms0 <= tol]:
         st.shape_votes.pop(int(k), None)
-    fits = rms0 <= SHAPE_MIN_RMS_M
+    fits = rms0 <= tol
     # every permutation of every misfitting segment's labels, registered in one batch (padded to the
     # widest segment): one call instead of one per segment, which cost more than the arithmetic
     flagged = np.flatnonzero(~fits)
@@ -791,10 +806,23 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
         to_spare = maps >= len(lab)  # (C, n): the label of point j goes to an unlabeled marker
         handed = (to_spare & (st.provisional[lab] <= 0)[None, :]).any(1)
         limit = np.where(to_spare.any(1), SHAPE_MAX_HANDOVER_M, SHAPE_MAX_JUMP_M)
-        rms = np.where((symmetric_rms < SHAPE_DISTINCT_M) | (jump > limit) | handed, np.inf, rms)
+        # a relabelling that moves the layout's markers less than SHAPE_DISTINCT_M is taken only on clear
+        # evidence: the labels misfit the layout by about that move, and the relabelled ones fit it as tightly
+        # as in calibration (a toe label on the fifth metatarsal's point, 11 mm apart in the foot's layout:
+        # 10 mm misfit, 0.4 mm relabelled; 85_12 at L2). Not with two labels: they match one distance, and a
+        # head band's sides and diagonals offer several.
+        clear = (
+            (len(lab) >= SHAPE_CLEAR_MIN_LABELS) & (typical[r] <= SHAPE_CLEAR_LAYOUT_M)
+            & (symmetric_rms >= SHAPE_CLEAR_MIN_M) & (rms0[r] >= SHAPE_CLEAR_SHARE * symmetric_rms)
+            & (rms <= max(SHAPE_CLEAR_FIT_M, 2.0 * typical[r]))
+        )
+        rms = np.where(((symmetric_rms < SHAPE_DISTINCT_M) & ~clear) | (jump > limit) | handed, np.inf, rms)
         rms[0] = np.inf
         best = int(np.argmin(rms))
-        if rms[best] < min(SHAPE_GAIN * rms0[r], SHAPE_GOOD_RMS_M) and symmetric_rms[best] > 2.0 * rms[best]:
+        # (one taken on clear evidence must also stand out: two that fit alike leave it open which)
+        rivals = np.count_nonzero(rms < 2.0 * rms[best] + 0.001)
+        unique = rivals <= 1 or symmetric_rms[best] >= SHAPE_DISTINCT_M
+        if unique and rms[best] < min(SHAPE_GAIN * rms0[r], SHAPE_GOOD_RMS_M) and symmetric_rms[best] > 2.0 * rms[best]:
             proposals[r] = slot[maps[best]]
         else:
             st.shape_votes.pop(int(ks[r]), None)

@@ -367,6 +367,41 @@ def test_with_one_other_label_in_view_a_re_acquired_label_is_handed_by_their_dis
     assert idx[b] == b and idx[a] == -1 and idx[fore[2]] == -1 and set(np.flatnonzero(changed)) == {a, b}
 
 
+def test_a_label_on_a_near_neighbours_point_is_handed_over_on_clear_evidence():
+    """A foot of four markers (53-marker set), three labeled: heel, fifth metatarsal, and the first
+    metatarsal's label re-acquired on the toe marker's point, 5.6 cm away. Registered, the two layouts differ
+    by less than SHAPE_DISTINCT_M, which used to rule the handover out (a toe label sat 1.6 s on the fifth
+    metatarsal's point: 85_12 at L2); the labels misfit by about that difference and the handed-over ones
+    fit exactly, so the point goes to the toe marker. Not with a layout that was loose in calibration."""
+    from protocol.skeleton import SEGMENTS
+
+    perf = perform(3, marker_set="gt53", duration_s=0.1)
+    m = len(perf.marker_names)
+    foot = {perf.marker_names[i]: i for i in np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_foot"))}
+    heel, mt5, mt1, toe = foot["RHEL"], foot["RMT5"], foot["RMT1"], foot["RTOE"]
+    off = perf.marker_offsets_m
+    now, moved = off[[heel, mt5, mt1]], off[[heel, mt5, toe]]
+    symmetric = tracker._kabsch_rms(moved[None], now[None], np.ones((1, 3), bool))[0]
+    assert tracker.SHAPE_CLEAR_MIN_M <= symmetric < tracker.SHAPE_DISTINCT_M
+
+    def handed(layout_rms_m: float):
+        model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, off, perf.joint_offsets_m, True,
+                                     layout_offsets_m=off, layout_rms_m=np.full(m, layout_rms_m))
+        points = perf.recording.points_m[0]
+        st = tracker.new_state(model, points, t_ns(0))
+        st.shape_fit[:], st.shape_checks[:] = 1.0, 10
+        idx = np.arange(m)
+        idx[mt1], idx[toe] = toe, -1
+        st.provisional[mt1] = tracker.PROBATION_FRAMES
+        for _ in range(tracker.SHAPE_CONFIRM):
+            cur = np.where(idx[:, None] >= 0, points[np.maximum(idx, 0)], np.nan)
+            tracker._relabel_by_shape(model, st, points, idx, cur)
+        return idx[toe] == toe and idx[mt1] == -1
+
+    assert handed(0.002)
+    assert not handed(0.004)
+
+
 def run_tracker(points_m: np.ndarray, seed_frames: int, shuffle_seed: int = 0, ghosts_m=None):
     """Seed, then step every later frame with the points shuffled; returns per frame the true marker each
     marker slot was given (-1 = none, -2 = a ghost)."""
