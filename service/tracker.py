@@ -763,8 +763,10 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     # a segment fits when its labels sit about as well as they did in calibration: a few times its markers'
     # own layout residual (1-2 mm on a foot), and never worse than SHAPE_MIN_RMS_M. A fixed 12 mm let a toe
     # label on the fifth metatarsal's point pass (10 mm, 85_12 at L2) for 1.6 s.
+    # (only where a relabelling could then be taken on clear evidence, below: checking the others costs time)
     typical = np.array([np.sqrt(np.mean(model.layout_rms_m[g] ** 2)) for g in groups])
-    tol = np.minimum(SHAPE_MIN_RMS_M, np.maximum(SHAPE_FIT_FLOOR_M, 4.0 * typical))
+    can_clear = (np.array([len(g) for g in groups]) >= SHAPE_CLEAR_MIN_LABELS) & (typical <= SHAPE_CLEAR_LAYOUT_M)
+    tol = np.where(can_clear, np.minimum(SHAPE_MIN_RMS_M, np.maximum(SHAPE_FIT_FLOOR_M, 4.0 * typical)), SHAPE_MIN_RMS_M)
     for k in ks[rms0 <= tol]:
         st.shape_votes.pop(int(k), None)
     fits = rms0 <= tol
