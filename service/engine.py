@@ -148,7 +148,8 @@ class Engine:
         self._clocks: dict[str, _StreamClock] = {}
         self._auto_count = 0
         # what a helper process needs to build the same solver (`refined_model`)
-        self._solver_spec = (config.max_markers, config.solver_max_steps, config.solver_rtol, config.prior_weight, config.solver_atol)
+        self._solver_spec = (config.max_markers, config.solver_max_steps, config.solver_rtol, config.prior_weight,
+                             config.solver_atol)
 
     # ---------------------------------------------------------------- lifecycle
     def warm_up(self) -> float:
@@ -331,9 +332,9 @@ class Engine:
 
     def _maybe_calibrate(self, s: _Subject, frame) -> None:
         """Fit a skeleton once an upright pose is in the labeled history; retry every second if not. The
-        work (50-300 ms, more with many markers) runs in the helper process (`service.worker`), like refinement, and takes
-        effect CALIBRATE_APPLY_FRAMES frames after it started (waiting for it then if need be): the frame
-        loop does not stall on it, and `label` and the daemon give the same labels."""
+        work (50-300 ms, more with many markers) runs in the helper process (`service.worker`), like
+        refinement, and takes effect CALIBRATE_APPLY_FRAMES frames after it started (waiting for it then
+        if need be): the frame loop does not stall on it, and `label` and the daemon give the same labels."""
         if s.calibration_job is not None:
             future, apply_at = s.calibration_job
             if s.state.frames < apply_at:
@@ -364,11 +365,11 @@ class Engine:
         """Re-align the skeleton to the recent labeled history when it fits the markers poorly (the
         calibration pose hid the joints: a joint shows where it is only when it bends).
 
-        The work (0.1-0.5 s) runs in the helper process (`service.worker`), off the frame loop, and its result is applied exactly
-        REFINE_APPLY_FRAMES frames after it was started — waiting for it then if need be — so the daemon
-        never stalls and `mocap-service label` gives the same labels as the daemon, frame for frame.
-        Intervals double after each refinement (backoff) so a subject whose markers wobble on the skin
-        does not keep the worker busy."""
+        The work (0.1-0.5 s) runs in the helper process (`service.worker`), off the frame loop, and its
+        result is applied exactly REFINE_APPLY_FRAMES frames after it was started — waiting for it then if
+        need be — so the daemon never stalls and `mocap-service label` gives the same labels as the daemon,
+        frame for frame. Intervals double after each refinement (backoff) so a subject whose markers wobble
+        on the skin does not keep the helper busy."""
         st = s.state
         if s.refine_job is not None:
             future, apply_at = s.refine_job
