@@ -633,14 +633,13 @@ def _warm_solver(spec: tuple) -> None:
     _solver(spec).warm_up()
 
 
-def refined_model(solver, model, hist, t0, R0, n_frames: int = 40, rounds: int = 2):
+def refined_model(solver_spec: tuple, model, hist, t0, R0, n_frames: int = 40, rounds: int = 2):
     """A better skeleton for `model` from labeled history (F, M, 3): poses of up to n_frames frames are
     solved with the current model, markers move to the segment that carries them best, then the least-
     squares alignment gives new offsets; twice. Pure (no engine state), so it can run in the helper process.
-    None if the history is too thin. `solver`: a PoseSolver, or the arguments that build one (in the helper
-    process, which has its own)."""
-    if isinstance(solver, tuple):
-        solver = _solver(solver)
+    None if the history is too thin. `solver_spec`: the arguments of the PoseSolver it solves with (the helper
+    process builds its own, once)."""
+    solver = _solver(solver_spec)
     good = np.flatnonzero(np.isfinite(hist[..., 0]).sum(1) >= 8)
     good = good[good >= len(hist) - 3 * n_frames]  # the recent past: it shows the motion that calls for this
     if len(good) < 12:

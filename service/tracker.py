@@ -814,8 +814,7 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
         # 10 mm misfit, 0.4 mm relabelled; 85_12 at L2). Not with two labels: they match one distance, and a
         # head band's sides and diagonals offer several.
         clear = (
-            (len(lab) >= SHAPE_CLEAR_MIN_LABELS) & (typical[r] <= SHAPE_CLEAR_LAYOUT_M)
-            & (symmetric_rms >= SHAPE_CLEAR_MIN_M) & (rms0[r] >= SHAPE_CLEAR_SHARE * symmetric_rms)
+            can_clear[r] & (symmetric_rms >= SHAPE_CLEAR_MIN_M) & (rms0[r] >= SHAPE_CLEAR_SHARE * symmetric_rms)
             & (rms <= max(SHAPE_CLEAR_FIT_M, 2.0 * typical[r]))
         )
         rms = np.where(((symmetric_rms < SHAPE_DISTINCT_M) & ~clear) | (jump > limit) | handed, np.inf, rms)

@@ -27,7 +27,7 @@ import sys
 import threading
 from pathlib import Path
 
-_HEADER = struct.Struct("<Q")
+_HEADER = struct.Struct("<QQ")  # job id, payload length
 _REPO = Path(__file__).resolve().parents[1]
 
 
@@ -42,7 +42,7 @@ class Worker:
         self.cache_dir = cache_dir
         self._lock = threading.Lock()
         self._proc: subprocess.Popen | None = None
-        self._pending: dict[int, concurrent.futures.Future] = {}
+        self._pending: dict[int, concurrent.futures.Future] = {}  # the running child's jobs not yet answered
         self._next_id = 0
         self._outbox: queue.SimpleQueue | None = None  # the running child's jobs, written by a thread of their own
 
@@ -56,7 +56,7 @@ class Worker:
             self._pending[job] = future
             # written by another thread: a child busy with a job reads the next only then, and a frame loop
             # writing a history of a few hundred kB into the full pipe would wait for it
-            self._outbox.put(_HEADER.pack(job) + _HEADER.pack(len(payload)) + payload)
+            self._outbox.put(_HEADER.pack(job, len(payload)) + payload)
         return future
 
     def cpu_s(self) -> float:
@@ -94,10 +94,11 @@ class Worker:
         )
         os.close(write_fd)
         self._proc = proc
+        self._pending = {}  # its own: a dead child's reader fails its jobs, not its successor's
         self._outbox = queue.SimpleQueue()
         threading.Thread(target=self._write, args=(proc, self._outbox), name="mocap-worker-jobs", daemon=True).start()
-        threading.Thread(target=self._read, args=(proc, os.fdopen(read_fd, "rb")), name="mocap-worker-results",
-                         daemon=True).start()
+        threading.Thread(target=self._read, args=(proc, os.fdopen(read_fd, "rb"), self._pending),
+                         name="mocap-worker-results", daemon=True).start()
         return proc
 
     @staticmethod
@@ -114,22 +115,22 @@ class Worker:
         except OSError:
             pass
 
-    def _read(self, proc: subprocess.Popen, results) -> None:
+    def _read(self, proc: subprocess.Popen, results, pending: dict) -> None:
         """Complete the futures as results arrive; when the child is gone, fail what is left."""
         with results:
             while True:
-                head = results.read(2 * _HEADER.size)
-                if len(head) < 2 * _HEADER.size:
+                head = results.read(_HEADER.size)
+                if len(head) < _HEADER.size:
                     break
-                job, n = _HEADER.unpack_from(head)[0], _HEADER.unpack_from(head, _HEADER.size)[0]
+                job, n = _HEADER.unpack(head)
                 ok, value = pickle.loads(results.read(n))
                 with self._lock:
-                    future = self._pending.pop(job, None)
+                    future = pending.pop(job, None)
                 if future is not None:
                     future.set_result(value) if ok else future.set_exception(WorkerError(value))
         with self._lock:
-            left = list(self._pending.values())
-            self._pending.clear()
+            left = list(pending.values())
+            pending.clear()
         for future in left:
             future.set_exception(WorkerError(f"the helper process exited (status {proc.poll()})"))
 
@@ -157,17 +158,17 @@ def _serve(result_fd: int, cache_dir: str) -> None:
         enable_compilation_cache(cache_dir)
     jobs, results = sys.stdin.buffer, os.fdopen(result_fd, "wb")
     while True:
-        head = jobs.read(2 * _HEADER.size)
-        if len(head) < 2 * _HEADER.size:
+        head = jobs.read(_HEADER.size)
+        if len(head) < _HEADER.size:
             return  # the parent closed our stdin (or died)
-        job, n = _HEADER.unpack_from(head)[0], _HEADER.unpack_from(head, _HEADER.size)[0]
+        job, n = _HEADER.unpack(head)
         try:
             fn, args = pickle.loads(jobs.read(n))
             out = (True, fn(*args))
         except Exception as e:  # noqa: BLE001 - a failed job is reported to its caller, the worker lives on
             out = (False, f"{type(e).__name__}: {e}")
         payload = pickle.dumps(out, protocol=pickle.HIGHEST_PROTOCOL)
-        results.write(_HEADER.pack(job) + _HEADER.pack(len(payload)) + payload)
+        results.write(_HEADER.pack(job, len(payload)) + payload)
         results.flush()
 
 
