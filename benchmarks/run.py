@@ -315,8 +315,8 @@ def _cell(r: JobResult | None) -> str:
 def accuracy_table(results: list[JobResult], files: list[str], levels: list[str]) -> list[str]:
     by_key = {(r.job.file, r.job.level, r.job.mode, r.job.variant): r for r in results}
     lines = [
-        "| file | level | mode | frames | " + " | ".join(VARIANTS) + " |",
-        "|---|---|---|---|" + "---|" * len(VARIANTS),
+        "| file | level | mode | frames | ceiling | " + " | ".join(VARIANTS) + " |",
+        "|---|---|---|---|---|" + "---|" * len(VARIANTS),
     ]
     for file in files:
         for mode in ("seeded", "tpose"):
@@ -328,15 +328,18 @@ def accuracy_table(results: list[JobResult], files: list[str], levels: list[str]
                 frames = f"{first.n_frames - first.score.first_scored_frame}"
                 if first.job.max_frames is not None and first.n_frames >= first.job.max_frames:
                     frames += " (capped)"
-                lines.append(f"| {file} | {level} | {mode} | {frames} | " + " | ".join(_cell(r) for r in row) + " |")
+                ceiling = next((_pct(r.score.ceiling) for r in row if r is not None and not r.error), "")
+                lines.append(f"| {file} | {level} | {mode} | {frames} | {ceiling} | " + " | ".join(_cell(r) for r in row) + " |")
     return lines
 
 
 def summary_table(results: list[JobResult], levels: list[str]) -> list[str]:
     """Mean accuracy per level and variant over the seeded files (each file weighs the same)."""
-    lines = ["| level | " + " | ".join(VARIANTS) + " |", "|---|" + "---|" * len(VARIANTS)]
+    lines = ["| level | ceiling | " + " | ".join(VARIANTS) + " |", "|---|---|" + "---|" * len(VARIANTS)]
     for level in levels:
-        cells = []
+        ceilings = [r.score.ceiling for r in results if r.job.level == level and r.job.variant == VARIANTS[0]
+                    and r.job.mode == "seeded" and r.score.n_true_points]
+        cells = [_pct(float(np.mean(ceilings))) if ceilings else ""]
         for v in VARIANTS:
             acc = [r.score.accuracy for r in results if r.job.level == level and r.job.variant == v
                    and r.job.mode == "seeded" and not r.error and r.score.n_true_points]
@@ -441,7 +444,9 @@ def write_report(path: Path, args, meta: dict, files, levels, results, notes, sp
         "Each cell: accuracy / precision / ghost false-label rate, in %. Seeded runs are scored from the first "
         "unlabeled frame (after 2 s), tpose runs from frame 0; `–` = no ghost points (or no label given). "
         "`nnt` is last-position nearest-neighbour tracking (3 cm gate), `nnt-velocity` the same with a "
-        "constant-velocity prediction; both only in seeded mode.",
+        "constant-velocity prediction; both only in seeded mode. `ceiling`: the best accuracy any labeler could "
+        "expect on the run (`benchmarks/score.py`): seeded, markers whose names no seed frame gave cannot be named; "
+        "either mode, a point with an exact copy among the ghost points (HDM05's `*N`) is a coin toss.",
         "",
         *accuracy_table(results, files, levels),
         "",

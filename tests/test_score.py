@@ -116,3 +116,16 @@ def test_plot_errors_writes_a_png(tmp_path):
     path = tmp_path / "errors.png"
     plot_errors(score(SEQ, given), path, title="hand-made", rate_hz=100.0)
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_ceiling_counts_names_the_seed_never_gave_and_copied_points_as_a_coin_toss():
+    # A and B apart; C never seen in the 1-frame seed; in frame 2 a ghost sits 1 mm from A (a copy of it)
+    pts = {0: [0.0, 0, 0], 1: [1.0, 0, 0], 2: [0, 1.0, 0]}
+    truths = [[0, 1], [0, 1, 2], [0, 1, 2, -1]]
+    points = [np.array([pts[t] if t >= 0 else [0.001, 0, 0] for t in tr]) for tr in truths]
+    seq = CorruptedSequence(points_m=points, truth=[np.array(t) for t in truths], marker_names=NAMES, rate_hz=100.0)
+    s = score(seq, truthful(seq), "seeded", first_scored_frame=1)
+    assert s.n_true_points == 6
+    assert s.ceiling == pytest.approx((6 - 2 - 0.5) / 6)  # C twice unnameable; A once a coin toss
+    assert s.accuracy == 1.0  # the truth itself is not bound by it: it knows which copy is which
+    assert score(seq, truthful(seq), "tpose").ceiling == pytest.approx((8 - 0.5) / 8)  # tpose names its own
