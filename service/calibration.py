@@ -23,7 +23,6 @@ import scipy.sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
-from scipy.spatial.transform import Rotation
 
 from protocol.skeleton import PARENTS, SEGMENTS
 
@@ -150,11 +149,12 @@ def _seg_dist(q, a, b):
 
 
 def calibrate(
-    positions_m: np.ndarray, history_m: np.ndarray | None = None
+    positions_m: np.ndarray, history_m: np.ndarray | None = None, distance_sd: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Skeleton of an upright subject from one frame of its markers (M, 3; NaN = unseen, filled by caller).
     With `history_m` (F, M, 3) showing motion, markers whose nearest bones are close calls go to the
-    segment whose markers keep the steadiest distances to them (they move rigidly together).
+    segment whose markers keep the steadiest distances to them (they move rigidly together);
+    `distance_sd`, the history's `_distance_sd` if the caller has it.
 
     Returns (marker_segment (M,), marker_offsets_m (M, 3), joint_offsets_m (14, 3), t_world_root_m (3,),
     R_parent_segment (14, 3, 3)) — the calibration pose is the model's zero pose.
@@ -233,7 +233,9 @@ def calibrate(
         )
         marker_segment[on_arm] = np.where(d_up[on_arm] < d_fore[on_arm], S[f"{side}_upperarm"], S[f"{side}_forearm"])
     if history_m is not None and len(history_m) >= 10:
-        marker_segment = _by_rigidity(marker_segment, cost, history_m, bone_cost)
+        sd = _distance_sd(history_m) if distance_sd is None else distance_sd
+        marker_segment = _by_rigidity(marker_segment, cost, history_m, bone_cost, sd=sd)
+        marker_segment = _uncross_sides(marker_segment, sd)
     joints_world = np.stack([J[n] for n in SEGMENTS]) * h @ bf.R_world_body.T + bf.origin_m
     joint_offsets = np.zeros((len(SEGMENTS), 3))
     for i, p in enumerate(PARENTS):
@@ -254,20 +256,18 @@ STEADY_TIE = 1.5  # segments this close to the steadiest are told apart by their
 
 
 def _by_rigidity(
-    marker_segment: np.ndarray, cost: np.ndarray, history_m: np.ndarray, bone_cost: np.ndarray | None = None, margin: float = 0.08
+    marker_segment: np.ndarray, cost: np.ndarray, history_m: np.ndarray, bone_cost: np.ndarray | None = None, margin: float = 0.08,
+    sd: np.ndarray | None = None,
 ) -> np.ndarray:
     """Reassign each marker among its plausible segments (bone cost within `margin` heights of the best,
     arm segments always plausible) to the one whose other markers keep the steadiest distances to it,
     when the history moved enough to tell (the best choice is clearly steadier than the geometric one).
+    `sd`: the history's `_distance_sd`, if the caller has it.
 
     Markers move one at a time, the clearest case first, and each move changes the segments' members: hands
     hanging at the hips sit in the pelvis's capsule, and until they leave it, the pelvis markers' distances
     to them make the pelvis look unsteady to its own markers (a tennis player's ASIS/PSIS went to the thigh)."""
-    d = np.stack([cdist(frame, frame) for frame in history_m])  # (F, M, M); 20x faster than broadcasting
-    n = np.isfinite(d).sum(0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # pairs never seen together: all-NaN
-        sd = np.where(n >= 10, np.nanstd(d, axis=0), np.nan)
+    sd = _distance_sd(history_m) if sd is None else sd
     m, n_seg = cost.shape
     best_cost = np.nanmin(np.where(np.isfinite(cost), cost, np.nan), axis=1)
     plausible = (cost - best_cost[:, None] < margin) | ~np.isfinite(cost)
@@ -310,17 +310,64 @@ def _by_rigidity(
     return out
 
 
+def _distance_sd(history_m: np.ndarray) -> np.ndarray:
+    """(M, M) standard deviation of each pair of markers' distance over labeled history (F, M, 3) [m]; NaN
+    for pairs seen together in fewer than 10 frames."""
+    d = np.stack([cdist(frame, frame) for frame in history_m])  # (F, M, M); 20x faster than broadcasting
+    n = np.isfinite(d).sum(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # pairs never seen together: all-NaN
+        return np.where(n >= 10, np.nanstd(d, axis=0), np.nan)
+
+
+# `_uncross_sides`: a left/right pair of limb segments trades its markers when each side's markers keep their
+# distances to the other side's chain above (parent and grandparent) this much steadier than to their own.
+UNCROSS_RATIO = 0.5
+_SIDE_PAIRS = tuple((S[f"l_{n}"], S[f"r_{n}"]) for n in ("thigh", "shank", "foot", "upperarm", "forearm"))
+
+
+def _uncross_sides(marker_segment: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    """Give a left/right pair of limb segments each other's markers when the history says they are crossed.
+
+    The nearest bone takes a foot set down across the midline (a walker's stride, 07_01) for the other
+    foot, all of its markers at once, and `_by_rigidity` cannot see it: each foot's markers still move
+    rigidly together. Its chain can: a foot's markers keep their distances to the shank and thigh above
+    it, not to the other leg's. Pairs are judged proximal first, each against its chain as already
+    settled (the thighs, hanging from the pelvis, keep the side the geometry gave them); `sd` is
+    `_distance_sd` of the history, and a history that hardly moved (sd under MIN_UNSTEADY_M) changes
+    nothing."""
+    out = marker_segment.copy()
+
+    def steadiness(own: np.ndarray, k: int) -> float:
+        up = [p for p in (PARENTS[k], PARENTS[PARENTS[k]] if PARENTS[k] >= 0 else -1) if p >= 0]
+        v = sd[np.ix_(own, np.isin(out, up))]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # no pair seen together: all-NaN
+            return float(np.nanmedian(v)) if v.size else float("nan")
+
+    for left, right in _SIDE_PAIRS:
+        on_l, on_r = out == left, out == right
+        if not on_l.any() or not on_r.any():
+            continue
+        now = steadiness(on_l, left) + steadiness(on_r, right)
+        crossed = steadiness(on_r, left) + steadiness(on_l, right)
+        if now > MIN_UNSTEADY_M and crossed < UNCROSS_RATIO * now:  # NaN compares False
+            out[on_l], out[on_r] = right, left
+    return out
+
+
 def _is_arm(k: int) -> bool:
     return SEGMENTS[k].endswith(("upperarm", "forearm"))
 
 
 def rigid_motion(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The rotation R (3, 3) and translation t (3,) that best take points a (N, 3) onto b (N, 3), b ~ R a + t
-    (Kabsch, by scipy's Rotation.align_vectors)."""
+    (Kabsch). Hand-written: scipy's Rotation.align_vectors gives the same rotation at ~85 us a call, 4x
+    this, and calibration makes thousands (nearly collinear points get the best fit there is, no warning)."""
     ca, cb = a.mean(0), b.mean(0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)  # nearly collinear points: still the best fit there is
-        R = Rotation.align_vectors(b - cb, a - ca)[0].as_matrix()
+    U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0  # a reflection: flip the least significant axis
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
     return R, cb - R @ ca
 
 
@@ -346,14 +393,14 @@ def layout_residuals(history_m: np.ndarray, marker_segment: np.ndarray, marker_o
         return np.nanmedian(res, axis=0) if len(pick) else np.full(M, np.nan)
 
 
-def fill_reference(history_m: np.ndarray, n_near: int = 5) -> np.ndarray:
-    """One frame (M, 3) for calibration from labeled history (F, M, 3): the frame with most markers seen,
-    with markers unseen there moved in from the nearest frame that has them, by the rigid motion (Kabsch)
+def fill_reference(history_m: np.ndarray, n_near: int = 5, frame: int | None = None) -> np.ndarray:
+    """One frame (M, 3) for calibration from labeled history (F, M, 3): `frame`, by default the one with
+    most markers seen, with markers unseen there moved in from the nearest frame that has them, by the rigid motion (Kabsch)
     of their n_near nearest markers seen in both frames: a limb that turned between the two frames carries
     its markers along (the cloud's mean shift put a sternum marker seen 2 s earlier 6-15 cm off, where it
     was never found again). With fewer than 3 such neighbours, the shift of the markers the frames share."""
     seen = np.isfinite(history_m[..., 0])
-    ref_i = int(np.argmax(seen.sum(1)))
+    ref_i = int(np.argmax(seen.sum(1))) if frame is None else frame
     ref = history_m[ref_i].copy()
     for j in np.flatnonzero(~seen[ref_i]):
         frames = np.flatnonzero(seen[:, j])
@@ -370,6 +417,74 @@ def fill_reference(history_m: np.ndarray, n_near: int = 5) -> np.ndarray:
             shift = (history_m[ref_i, common] - src[common]).mean(0) if len(common) else 0.0
             ref[j] = src[j] + shift
     return ref
+
+
+# `calibrate_from_history` tries the frame with most markers seen and up to CANDIDATE_FRAMES others seen
+# about as fully (at most 2 markers fewer), and takes another's calibration only if it explains the history
+# clearly better (its score under CANDIDATE_GAIN times the first's).
+CANDIDATE_FRAMES = 4
+CANDIDATE_GAIN = 0.5
+
+
+def calibrate_from_history(history_m: np.ndarray):
+    """(marker_segment, marker_offsets_m, joint_offsets_m, t_world_root_m, R_parent_segment, layout_rms_m)
+    of the calibration that best explains labeled history (F, M, 3), or None if no frame of it calibrates.
+
+    One frame's pose can mislead `calibrate` (a boxer's guard, arms forward across the shoulder line, turned
+    its body frame: head markers went to the forearm, 22 of 33 markers off their segment, cmu_02_05).
+    So several frames are calibrated, each scored by how rigidly its segments' markers move over the
+    history (`layout_residuals`) plus how well its joints hold the segments together
+    (`articulation_error`), and the best is kept. Markers never seen keep offset zero (the engine parks
+    them until they are seen). Pure, for the helper process."""
+    seen = np.isfinite(history_m[..., 0]).sum(1)
+    first = int(np.argmax(seen))
+    full = np.flatnonzero(seen >= seen[first] - 2)
+    others = full[np.linspace(0, len(full) - 1, min(CANDIDATE_FRAMES, len(full))).astype(int)]
+    sd = _distance_sd(history_m)
+    best, best_score, first_score = None, np.inf, np.inf
+    for i in [first, *sorted(set(others.tolist()) - {first})]:
+        ref = fill_reference(history_m, frame=i)
+        ok = np.isfinite(ref[:, 0])
+        try:
+            seg, off, joints, t_root, R = calibrate(np.where(ok[:, None], ref, np.nan), history_m, sd)
+        except CalibrationError:
+            continue
+        off = np.where(ok[:, None], off, 0.0)  # never seen: parked on the pelvis with zero weight
+        layout = layout_residuals(history_m, seg, off)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # nothing measured: NaN, scored as the worst
+            score = np.nanmedian(layout) + articulation_error(ref, history_m, seg, joints, t_root, R)
+        score = score if np.isfinite(score) else np.inf
+        if best is None:
+            first_score = score
+        if best is None or (score < best_score and score < CANDIDATE_GAIN * first_score):
+            best, best_score = (seg, off, joints, t_root, R, layout), score
+    return best
+
+
+def articulation_error(ref: np.ndarray, history_m: np.ndarray, marker_segment: np.ndarray, joint_offsets_m: np.ndarray,
+                       t_root: np.ndarray, R_parent_segment: np.ndarray, n_frames: int = 20) -> float:
+    """How well a calibration's joints hold its segments together over labeled history (F, M, 3): the
+    median [m], over up to n_frames frames and the joints whose two segments each show 3 markers there and
+    in `ref` (the calibration frame), of the distance between where the two segments' rigid motions from
+    `ref` carry the joint. A segment given another bone's markers, or a joint far from where its segments
+    turn, reads centimetres; NaN if no joint could be checked."""
+    _, joints = world_transforms(t_root, R_parent_segment, joint_offsets_m)
+    pick = np.linspace(0, len(history_m) - 1, min(n_frames, len(history_m))).astype(int)
+    errors = []
+    for f in pick:
+        P = history_m[f]
+        both = np.isfinite(P[:, 0]) & np.isfinite(ref[:, 0])
+        motion = {}
+        for k in np.unique(marker_segment[both]):
+            idx = np.flatnonzero(both & (marker_segment == k))
+            if len(idx) >= 3:
+                motion[int(k)] = rigid_motion(ref[idx], P[idx])
+        for child, parent in enumerate(PARENTS):
+            if child in motion and parent in motion:
+                (Rc, tc), (Rp, tp) = motion[child], motion[parent]
+                errors.append(np.linalg.norm(Rc @ joints[child] + tc - Rp @ joints[child] - tp))
+    return float(np.median(errors)) if errors else float("nan")
 
 
 def is_tpose(P: np.ndarray) -> bool:

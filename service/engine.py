@@ -358,7 +358,7 @@ class Engine:
         if s.model.has_skeleton or s.state.frames < s.next_calibration_frame or len(s.history) < 12:
             return
         s.next_calibration_frame = s.state.frames + 120
-        job = self._worker().submit(_calibrated, np.stack(s.history))
+        job = self._worker().submit(calibration.calibrate_from_history, np.stack(s.history))
         s.calibration_job = (job, s.state.frames + CALIBRATE_APPLY_FRAMES)
 
     def _maybe_refine(self, s: _Subject) -> None:
@@ -593,20 +593,6 @@ class Engine:
             has_pose=s.model.has_skeleton,
             source=res.source,
         )
-
-
-def _calibrated(hist: np.ndarray):
-    """(marker_segment, marker_offsets, joint_offsets, t_root, R) of a skeleton calibrated from labeled
-    history (F, M, 3), or None if it shows no usable pose. Pure, for the helper process."""
-    ref = calibration.fill_reference(hist)
-    ok = np.isfinite(ref[:, 0])
-    try:
-        seg, off, joints, t_root, R = calibration.calibrate(np.where(ok[:, None], ref, np.nan), hist)
-    except calibration.CalibrationError:
-        return None
-    # markers never seen yet keep no segment until they are: park them on the pelvis with zero weight
-    off = np.where(ok[:, None], off, 0.0)
-    return seg, off, joints, t_root, R, calibration.layout_residuals(hist, seg, off)
 
 
 def _result(future, what: str):
