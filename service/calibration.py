@@ -9,6 +9,11 @@ goes to the segment whose bone (a capsule of anthropometric radius) is nearest; 
 body frame in the calibration pose (so joint angles are zero there: in a T-pose, the standard rest pose);
 marker offsets are the markers' positions in their segment frames.
 
+From labeled history (`calibrate_from_history`), the markers that keep their distances go to one segment
+(`_by_rigidity`), a left/right pair of limb segments crossed by the geometry is uncrossed by the chain above
+it (`_uncross_sides`), and of several frames' calibrations the one whose segments move most rigidly and whose
+joints hold best over the history is kept (one frame's pose can mislead the body frame).
+
 `detect_tpose` finds people standing in a T-pose in an unlabeled cloud (automatic initialisation).
 """
 
@@ -423,7 +428,7 @@ def fill_reference(history_m: np.ndarray, n_near: int = 5, frame: int | None = N
 # about as fully (at most 2 markers fewer), and takes another's calibration only if it explains the history
 # clearly better (its score under CANDIDATE_GAIN times the first's).
 CANDIDATE_FRAMES = 4
-CANDIDATE_GAIN = 0.5
+CANDIDATE_GAIN = 0.35
 
 
 def calibrate_from_history(history_m: np.ndarray):
