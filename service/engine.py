@@ -207,6 +207,7 @@ class Engine:
                 marker_segment=m.marker_segment, marker_offsets_m=m.marker_offsets_m, joint_offsets_m=m.joint_offsets_m,
                 pos_m=s.state.pos_m, ever_seen=s.state.ever_seen, t_root_m=s.state.t_root_m, R_parent_segment=s.state.R_parent_segment,
                 dist_n=s.state.dist_n, dist_mean_m=s.state.dist_mean_m, dist_var_m2=s.state.dist_var_m2,
+                dist_slow_mean_m=s.state.dist_slow_mean_m, dist_slow_var_m2=s.state.dist_slow_var_m2,
                 **({} if m.layout_rms_m is None else {"layout_offsets_m": m.layout_offsets_m, "layout_rms_m": m.layout_rms_m}),
             )
         return list(self._subjects)
@@ -230,6 +231,9 @@ class Engine:
                     st = tracker.new_state(model, pos, 0)
                     st.labeled[:] = False
                     st.dist_n, st.dist_mean_m, st.dist_var_m2 = z["dist_n"], z["dist_mean_m"], z["dist_var_m2"]
+                    # files written before the long-memory statistics start them from the running ones
+                    slow = ("dist_slow_mean_m", "dist_slow_var_m2") if "dist_slow_mean_m" in z.files else ("dist_mean_m", "dist_var_m2")
+                    st.dist_slow_mean_m, st.dist_slow_var_m2 = z[slow[0]].copy(), z[slow[1]].copy()
                     tracker._update_partners(st)
                     st.t_root_m, st.R_parent_segment = z["t_root_m"], z["R_parent_segment"]
             except (OSError, KeyError, ValueError) as e:

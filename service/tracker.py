@@ -32,7 +32,8 @@
    only for its own. Markers hidden long are re-acquired inside a gate that widens with the time hidden.
 
 Rigid partners are learned online: running statistics of every pairwise marker distance (only over
-labeled frames) rank, for each marker, the partners whose distance varies least.
+labeled frames) rank, for each marker, the partners whose distance varies least. They are kept with two
+memories, ~100 frames and ~1000 (SLOW_ALPHA): the long one still sees a swap the short one has absorbed.
 """
 
 from __future__ import annotations
@@ -119,6 +120,12 @@ CHECK_RESIDUAL_M = 0.006  # a tracked label this far [m] (+10 % of the step) fro
 CHECK_EVERY_FRAMES = 4  # every tracked label is checked against its rigid partners this often anyway
 REPAIR_EVERY_FRAMES = 4  # the long-run distance repair runs on every 4th frame (a swap lives 3 frames more)
 Z_SUSPECT = 4.0  # a label whose distances to its most rigid partners stray more sigmas than this is suspect
+#: The partner distances are kept twice: a running mean/variance that follows the body within ~100 frames
+#: (partners, weights, checks), and one with this smaller weight per update (~1000 frames), which a fresh
+#: swap cannot absorb. A wrist label swapped onto a waist marker's point 1.3 cm away had widened the fast
+#: statistics' spread enough to look normal within 10 frames, and stayed for 4 s (135_02 at L2); the slow
+#: ones still called it 7 sigmas off, and the repair swaps it back.
+SLOW_ALPHA = 0.002
 MAX_SPEED_M_S = 15.0  # markers never move faster; caps velocities estimated from bad predictions
 MAX_ACC_M_S2 = 300.0  # ... nor accelerate faster (a tennis serve's hand reaches ~200 m/s^2)
 SKELETON_VELOCITY_GAP_S = 0.05  # two fits at most this far apart give the skeleton markers' velocity
@@ -165,6 +172,8 @@ class TrackState:
     dist_n: np.ndarray  # (M, M) samples in the running distance statistics
     dist_mean_m: np.ndarray  # (M, M)
     dist_var_m2: np.ndarray  # (M, M)
+    dist_slow_mean_m: np.ndarray  # (M, M) the same, with a long memory (SLOW_ALPHA)
+    dist_slow_var_m2: np.ndarray  # (M, M)
     partners: np.ndarray  # (M, K) int, -1 = none
     snap_m: np.ndarray  # (M, M, 3): row i = every marker's position when i was last labeled (NaN = unlabeled then)
     provisional: np.ndarray  # (M,) int, frames left in which a re-acquired label is re-checked
@@ -220,6 +229,8 @@ def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m
         dist_n=np.zeros((m, m)),
         dist_mean_m=np.zeros((m, m)),
         dist_var_m2=np.zeros((m, m)),
+        dist_slow_mean_m=np.zeros((m, m)),
+        dist_slow_var_m2=np.zeros((m, m)),
         partners=np.full((m, N_PARTNERS), -1),
         snap_m=np.full((m, m, 3), np.nan),
         provisional=np.zeros(m, int),
@@ -248,18 +259,22 @@ def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m
 
 
 def _update_distances(st: TrackState, pos: np.ndarray, labeled: np.ndarray, alpha_min: float = 0.02) -> None:
-    """Running mean/variance of pairwise distances among labeled markers (count-based, then EMA). Masked
-    updates of the whole (M, M) matrices: cheaper than gathering and scattering the labeled block."""
+    """Running mean/variance of pairwise distances among labeled markers (count-based, then EMA with weight
+    alpha_min, and with SLOW_ALPHA for the long-memory pair). Masked updates of the whole (M, M) matrices:
+    cheaper than gathering and scattering the labeled block."""
     if labeled.sum() < 2:
         return
     p = np.where(labeled[:, None], pos, 0.0)
     d = cdist(p, p)
     pair = labeled[:, None] & labeled[None, :]
     n = st.dist_n + pair
-    alpha = np.where(pair, np.maximum(1.0 / np.maximum(n, 1.0), alpha_min), 0.0)
-    delta = d - st.dist_mean_m
-    st.dist_mean_m += alpha * delta
-    st.dist_var_m2 = (1 - alpha) * (st.dist_var_m2 + alpha * delta * delta)
+    first = 1.0 / np.maximum(n, 1.0)
+    for mean, var, a in ((st.dist_mean_m, st.dist_var_m2, alpha_min), (st.dist_slow_mean_m, st.dist_slow_var_m2, min(alpha_min, SLOW_ALPHA))):
+        alpha = np.where(pair, np.maximum(first, a), 0.0)
+        delta = d - mean
+        mean += alpha * delta  # in place, as the variance below
+        var *= 1 - alpha
+        var += (1 - alpha) * alpha * delta * delta
     st.dist_n = n
 
 
@@ -334,12 +349,13 @@ def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, whic
     return pred, spread
 
 
-def distance_misfit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+def distance_misfit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, rows: np.ndarray | None = None,
+                    slow: bool = False) -> np.ndarray:
     """How many standard deviations each labeled marker's distances to its most rigid labeled partners
     stray from their long-run means: the median z = |d - mean| / (sigma + 3 mm) over (up to) the 3
     partners with the smallest sigma that are labeled now. Unlike the rigid prediction, which follows the
-    last frames, this remembers the body, so a wrong label cannot become its own reference.
-    NaN for markers with fewer than 2 such partners."""
+    last frames, this remembers the body, so a wrong label cannot become its own reference; `slow` takes
+    the long-memory statistics. NaN for markers with fewer than 2 such partners."""
     m = len(cur)
     out = np.full(m, np.nan)
     idx = np.arange(m) if rows is None else np.asarray(rows)
@@ -349,8 +365,9 @@ def distance_misfit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, rows: 
     pk = np.maximum(part, 0)
     flat = idx[:, None] * m + pk  # (R, K) into the raveled (M, M) statistics: cheaper than 2-D fancy indexing
     valid = (part >= 0) & labeled[pk] & labeled[idx][:, None] & (st.dist_n.ravel()[flat] >= 10)
-    sigma = np.sqrt(st.dist_var_m2.ravel()[flat]) + 0.003
-    z = np.where(valid, np.abs(_norm(cur[idx][:, None, :] - cur[pk]) - st.dist_mean_m.ravel()[flat]) / sigma, np.inf)
+    mean, var = (st.dist_slow_mean_m, st.dist_slow_var_m2) if slow else (st.dist_mean_m, st.dist_var_m2)
+    sigma = np.sqrt(var.ravel()[flat]) + 0.003
+    z = np.where(valid, np.abs(_norm(cur[idx][:, None, :] - cur[pk]) - mean.ravel()[flat]) / sigma, np.inf)
     # keep the 3 most rigid valid partners of each marker (fancy indexing: take_along_axis costs 3x)
     rr = np.arange(len(idx))
     order = np.argsort(np.where(valid, sigma, np.inf), axis=1)[:, :3]
@@ -362,16 +379,18 @@ def distance_misfit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, rows: 
     return out
 
 
-def _misfit_at(st: TrackState, i: int, x: np.ndarray, cur: np.ndarray, labeled: np.ndarray, exclude: int = -1) -> float:
+def _misfit_at(st: TrackState, i: int, x: np.ndarray, cur: np.ndarray, labeled: np.ndarray, exclude: int = -1,
+               slow: bool = False) -> float:
     """distance_misfit of marker i if it were at x (NaN with fewer than 2 usable partners)."""
     part = st.partners[i]
     part = part[(part >= 0) & (part != exclude)]
     part = part[labeled[part] & (st.dist_n[i, part] >= 10)]
     if len(part) < 2:
         return float("nan")
-    sigma = np.sqrt(st.dist_var_m2[i, part]) + 0.003
+    mean, var = (st.dist_slow_mean_m, st.dist_slow_var_m2) if slow else (st.dist_mean_m, st.dist_var_m2)
+    sigma = np.sqrt(var[i, part]) + 0.003
     best = np.argsort(sigma)[:3]
-    z = np.abs(np.linalg.norm(cur[part[best]] - x, axis=1) - st.dist_mean_m[i, part[best]]) / sigma[best]
+    z = np.abs(np.linalg.norm(cur[part[best]] - x, axis=1) - mean[i, part[best]]) / sigma[best]
     return float(np.median(z))
 
 
@@ -381,26 +400,22 @@ def _repair_by_distances(
     """Where the long-run partner distances say a label is wrong (z > Z_SUSPECT), move it: swap two close
     suspects when each fits where the other is, or take a free point nearby that fits far better (the
     freed point's own marker can then re-acquire it). Catches swaps that rigid checks miss because both
-    markers moved together since. In place."""
+    markers moved together since. Swaps are looked for on the long-memory statistics first (a swap the
+    running ones have absorbed), then on the running ones. In place."""
     labeled = point_index >= 0
+    z_slow = distance_misfit(st, cur, labeled, slow=True)
+    sus = np.flatnonzero(labeled & (z_slow > Z_SUSPECT))  # NaN compares False
+    for a, i in enumerate(sus):
+        _swap_back(st, point_index, cur, labeled, z_slow, i, sus[a + 1 :], slow=True)
     z = distance_misfit(st, cur, labeled)
-    sus = np.flatnonzero(labeled & (z > Z_SUSPECT))  # NaN compares False
+    sus = np.flatnonzero(labeled & (z > Z_SUSPECT))
     if len(sus) == 0:
         return
     free_idx = np.flatnonzero(free)
     for a, i in enumerate(sus):
         if point_index[i] < 0:
             continue
-        for k in sus[a + 1 :]:
-            if point_index[k] < 0 or np.linalg.norm(cur[i] - cur[k]) > 0.25:
-                continue
-            swapped = _misfit_at(st, i, cur[k], cur, labeled, exclude=k) + _misfit_at(st, k, cur[i], cur, labeled, exclude=i)
-            if swapped < 0.3 * (z[i] + z[k]):
-                point_index[i], point_index[k] = point_index[k], point_index[i]
-                cur[[i, k]] = cur[[k, i]]
-                z[i] = z[k] = 0.0
-                break
-        else:
+        if not _swap_back(st, point_index, cur, labeled, z, i, sus[a + 1 :]):
             near = free_idx[np.linalg.norm(points[free_idx] - cur[i], axis=1) < 0.15] if len(free_idx) else free_idx
             if len(near):
                 zs = np.array([_misfit_at(st, i, points[p], cur, labeled) for p in near])
@@ -411,6 +426,24 @@ def _repair_by_distances(
                     free_idx = np.flatnonzero(free)
                     point_index[i] = near[j]
                     cur[i] = points[near[j]]
+
+
+def _swap_back(st: TrackState, point_index: np.ndarray, cur: np.ndarray, labeled: np.ndarray, z: np.ndarray, i: int,
+               others: np.ndarray, slow: bool = False) -> bool:
+    """Swap suspect i's label with the first of the suspects `others` within 25 cm such that each fits
+    where the other is (their misfits, z, fall under 0.3 of the sum); in place. Whether it swapped."""
+    if point_index[i] < 0:
+        return False
+    for k in others:
+        if point_index[k] < 0 or np.linalg.norm(cur[i] - cur[k]) > 0.25:
+            continue
+        swapped = _misfit_at(st, i, cur[k], cur, labeled, exclude=k, slow=slow) + _misfit_at(st, k, cur[i], cur, labeled, exclude=i, slow=slow)
+        if swapped < 0.3 * (z[i] + z[k]):
+            point_index[i], point_index[k] = point_index[k], point_index[i]
+            cur[[i, k]] = cur[[k, i]]
+            z[i] = z[k] = 0.0
+            return True
+    return False
 
 
 def _gather(points: np.ndarray, point_index: np.ndarray) -> np.ndarray:

@@ -381,6 +381,24 @@ def test_describe_shapes_and_save_load_round_trip(tmp_path):
     assert before.layout_rms_m is not None
     np.testing.assert_array_equal(after.layout_offsets_m, before.layout_offsets_m)
     np.testing.assert_array_equal(after.layout_rms_m, before.layout_rms_m)
+    # and both memories of the partner distances
+    for key in ("dist_mean_m", "dist_var_m2", "dist_slow_mean_m", "dist_slow_var_m2"):
+        np.testing.assert_array_equal(getattr(other._subjects["Performer"].state, key),
+                                      getattr(engine._subjects["Performer"].state, key), err_msg=key)
+
+
+def test_a_calibration_saved_before_the_long_memory_statistics_loads_with_the_running_ones(tmp_path):
+    engine, _ = tracked_engine()
+    engine.save(tmp_path)
+    f = tmp_path / "Performer.npz"
+    with np.load(f) as z:
+        old = {k: z[k] for k in z.files if not k.startswith("dist_slow")}
+    np.savez(f, **old)
+    st = Engine()
+    st.load(tmp_path)
+    state = st._subjects["Performer"].state
+    np.testing.assert_array_equal(state.dist_slow_mean_m, old["dist_mean_m"])
+    np.testing.assert_array_equal(state.dist_slow_var_m2, old["dist_var_m2"])
 
 
 def test_loaded_subject_resumes_tracking(tmp_path):

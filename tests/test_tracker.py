@@ -536,3 +536,36 @@ def test_the_solve_is_skipped_at_most_max_skip_frames_and_max_skip_s():
         for f in range(1, n + 1):
             st, res = tracker.step(model, st, P[f], np.ones(m, bool), ns[f], CONFIG, solver)
         assert solver.launches == n // every, rate
+
+
+@pytest.mark.parametrize("long_memory", [True, False])
+def test_a_swap_the_running_distance_statistics_absorbed_is_swapped_back(monkeypatch, long_memory):
+    """Two rigid bodies move apart after one marker of each was tracked through a crossing swapped (a wrist
+    passing 1.3 cm from a waist marker, 135_02 at L2). Within ten updates the running statistics widen
+    enough for the swapped labels to look normal; the long-memory ones do not, and the repair swaps back."""
+    if not long_memory:
+        monkeypatch.setattr(tracker, "SLOW_ALPHA", 0.02)  # the long memory as short as the running one
+    rng = np.random.default_rng(3)
+    plate = rng.uniform(-0.05, 0.05, (4, 3))
+    hist = []
+    for f in range(300):  # body B wanders about body A, each turning on its own
+        ra = Rotation.from_rotvec(rng.normal(0, 0.3, 3)).as_matrix()
+        rb = Rotation.from_rotvec(rng.normal(0, 0.3, 3)).as_matrix()
+        hist.append(np.vstack([plate @ ra.T, plate @ rb.T + [0.3, 0, 0] + rng.normal(0, 0.1, 3)]))
+    hist = np.array(hist)
+    model = tracker.SubjectModel("P", tuple(f"M{i}" for i in range(8)), np.zeros(8, int), np.zeros((8, 3)), np.zeros((14, 3)))
+    st = tracker.new_state(model, hist[-1], 0, hist)
+    # A's marker 0 and B's marker 4 met 1.3 cm apart and their labels crossed; B then moves off 15 cm over
+    # ten updates of the statistics (20 frames), the labels still crossed
+    a, b = plate.copy(), plate.copy()
+    b += a[0] - b[0] + [0.013, 0, 0]
+    for k in range(10):
+        now = np.vstack([a, b + [0.015 * k, 0, 0]])
+        crossed = now.copy()
+        crossed[[0, 4]] = now[[4, 0]]
+        tracker._update_distances(st, crossed, np.ones(8, bool))
+    point_index = np.array([4, 1, 2, 3, 0, 5, 6, 7])  # point 0 is A's marker 0 ...
+    cur = now[point_index]
+    assert tracker.distance_misfit(st, cur, np.ones(8, bool))[[0, 4]].max() < tracker.Z_SUSPECT  # absorbed
+    tracker._repair_by_distances(st, point_index, cur, now, np.zeros(8, bool))
+    assert (point_index == np.arange(8)).all() == long_memory
