@@ -439,8 +439,9 @@ def calibrate_from_history(history_m: np.ndarray):
     its body frame: head markers went to the forearm, 22 of 33 markers off their segment, cmu_02_05).
     So several frames are calibrated, each scored by how rigidly its segments' markers move over the
     history (`layout_residuals`) plus how well its joints hold the segments together
-    (`articulation_error`), and the best is kept. Markers never seen keep offset zero (the engine parks
-    them until they are seen). Pure, for the helper process."""
+    (`articulation_error`); the best replaces the fullest frame's when it scores under CANDIDATE_GAIN of
+    it. Markers never seen keep offset zero (the engine parks them until they are seen). Pure, for the
+    helper process."""
     seen = np.isfinite(history_m[..., 0]).sum(1)
     first = int(np.argmax(seen))
     full = np.flatnonzero(seen >= seen[first] - 2)
