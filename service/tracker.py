@@ -400,27 +400,21 @@ def _repair_by_distances(
     """Where the long-run partner distances say a label is wrong (z > Z_SUSPECT), move it: swap two close
     suspects when each fits where the other is, or take a free point nearby that fits far better (the
     freed point's own marker can then re-acquire it). Catches swaps that rigid checks miss because both
-    markers moved together since. Swaps are looked for on the long-memory statistics first (a swap the
-    running ones have absorbed), then on the running ones. In place."""
-    labeled = point_index >= 0
-    z_slow = distance_misfit(st, cur, labeled, slow=True)
-    sus = np.flatnonzero(labeled & (z_slow > Z_SUSPECT))  # NaN compares False
-    for a, i in enumerate(sus):
-        _swap_back(st, point_index, cur, labeled, z_slow, i, sus[a + 1 :], slow=True)
-    z = distance_misfit(st, cur, labeled)
-    sus = np.flatnonzero(labeled & (z > Z_SUSPECT))
-    if len(sus) == 0:
-        return
-    free_idx = np.flatnonzero(free)
-    for a, i in enumerate(sus):
-        if point_index[i] < 0:
-            continue
-        if not _swap_back(st, point_index, cur, labeled, z, i, sus[a + 1 :]):
+    markers moved together since. Judged on the long-memory statistics first (a swap the running ones
+    have absorbed), then on the running ones. In place."""
+    for slow in (True, False):
+        labeled = point_index >= 0
+        z = distance_misfit(st, cur, labeled, slow=slow)
+        sus = np.flatnonzero(labeled & (z > Z_SUSPECT))  # NaN compares False
+        free_idx = np.flatnonzero(free)
+        for a, i in enumerate(sus):
+            if point_index[i] < 0 or _swap_back(st, point_index, cur, labeled, z, i, sus[a + 1 :], slow):
+                continue
             near = free_idx[np.linalg.norm(points[free_idx] - cur[i], axis=1) < 0.15] if len(free_idx) else free_idx
             if len(near):
-                zs = np.array([_misfit_at(st, i, points[p], cur, labeled) for p in near])
-                j = int(np.nanargmin(zs)) if np.isfinite(zs).any() else -1
-                if j >= 0 and zs[j] < Z_SUSPECT and zs[j] < 0.3 * z[i]:
+                z_near = np.array([_misfit_at(st, i, points[p], cur, labeled, slow=slow) for p in near])
+                j = int(np.nanargmin(z_near)) if np.isfinite(z_near).any() else -1
+                if j >= 0 and z_near[j] < Z_SUSPECT and z_near[j] < 0.3 * z[i]:
                     free[point_index[i]] = True
                     free[near[j]] = False
                     free_idx = np.flatnonzero(free)
@@ -429,11 +423,9 @@ def _repair_by_distances(
 
 
 def _swap_back(st: TrackState, point_index: np.ndarray, cur: np.ndarray, labeled: np.ndarray, z: np.ndarray, i: int,
-               others: np.ndarray, slow: bool = False) -> bool:
+               others: np.ndarray, slow: bool) -> bool:
     """Swap suspect i's label with the first of the suspects `others` within 25 cm such that each fits
     where the other is (their misfits, z, fall under 0.3 of the sum); in place. Whether it swapped."""
-    if point_index[i] < 0:
-        return False
     for k in others:
         if point_index[k] < 0 or np.linalg.norm(cur[i] - cur[k]) > 0.25:
             continue
