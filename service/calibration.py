@@ -400,9 +400,9 @@ def layout_residuals(history_m: np.ndarray, marker_segment: np.ndarray, marker_o
 
 def fill_reference(history_m: np.ndarray, n_near: int = 5, frame: int | None = None) -> np.ndarray:
     """One frame (M, 3) for calibration from labeled history (F, M, 3): `frame`, by default the one with
-    most markers seen, with markers unseen there moved in from the nearest frame that has them, by the rigid motion (Kabsch)
-    of their n_near nearest markers seen in both frames: a limb that turned between the two frames carries
-    its markers along (the cloud's mean shift put a sternum marker seen 2 s earlier 6-15 cm off, where it
+    most markers seen, with markers unseen there moved in from the nearest frame that has them, by the
+    rigid motion (Kabsch) of their n_near nearest markers seen in both frames: a limb that turned between
+    the two frames carries its markers along (the cloud's mean shift put a sternum marker seen 2 s earlier 6-15 cm off, where it
     was never found again). With fewer than 3 such neighbours, the shift of the markers the frames share."""
     seen = np.isfinite(history_m[..., 0])
     ref_i = int(np.argmax(seen.sum(1))) if frame is None else frame

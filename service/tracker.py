@@ -349,6 +349,11 @@ def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, whic
     return pred, spread
 
 
+def _distance_stats(st: TrackState, slow: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, variance) (M, M) of the partner distances: the long-memory pair if `slow`, else the running one."""
+    return (st.dist_slow_mean_m, st.dist_slow_var_m2) if slow else (st.dist_mean_m, st.dist_var_m2)
+
+
 def distance_misfit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, rows: np.ndarray | None = None,
                     slow: bool = False) -> np.ndarray:
     """How many standard deviations each labeled marker's distances to its most rigid labeled partners
@@ -365,7 +370,7 @@ def distance_misfit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, rows: 
     pk = np.maximum(part, 0)
     flat = idx[:, None] * m + pk  # (R, K) into the raveled (M, M) statistics: cheaper than 2-D fancy indexing
     valid = (part >= 0) & labeled[pk] & labeled[idx][:, None] & (st.dist_n.ravel()[flat] >= 10)
-    mean, var = (st.dist_slow_mean_m, st.dist_slow_var_m2) if slow else (st.dist_mean_m, st.dist_var_m2)
+    mean, var = _distance_stats(st, slow)
     sigma = np.sqrt(var.ravel()[flat]) + 0.003
     z = np.where(valid, np.abs(_norm(cur[idx][:, None, :] - cur[pk]) - mean.ravel()[flat]) / sigma, np.inf)
     # keep the 3 most rigid valid partners of each marker (fancy indexing: take_along_axis costs 3x)
@@ -387,7 +392,7 @@ def _misfit_at(st: TrackState, i: int, x: np.ndarray, cur: np.ndarray, labeled: 
     part = part[labeled[part] & (st.dist_n[i, part] >= 10)]
     if len(part) < 2:
         return float("nan")
-    mean, var = (st.dist_slow_mean_m, st.dist_slow_var_m2) if slow else (st.dist_mean_m, st.dist_var_m2)
+    mean, var = _distance_stats(st, slow)
     sigma = np.sqrt(var[i, part]) + 0.003
     best = np.argsort(sigma)[:3]
     z = np.abs(np.linalg.norm(cur[part[best]] - x, axis=1) - mean[i, part[best]]) / sigma[best]
