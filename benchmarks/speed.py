@@ -52,6 +52,7 @@ COST_S = 20.0  # seconds of frames for the per-frame engine cost (after the seed
 REPEATS = 3  # runs per throughput, start-up and latency figure (1 with --quick); the median is reported
 LATENCY_S = 20.0  # seconds of frames per latency run (after the 2 s seed); 3 runs of 20 s keep the suite short
 SEED_S = 2.0
+BUSY_POLL_S = 0.02  # the daemon's --busy-poll for the latency variant that trades a core for latency
 START_TIMEOUT_S = 300.0
 STOP_TIMEOUT_S = 30.0
 
@@ -86,9 +87,10 @@ def _wait_rusage(proc: subprocess.Popen, timeout_s: float) -> tuple[int, float]:
 class DaemonProcess:
     """`mocap-service serve` on free loopback ports, with a client context; stopped by SIGTERM on exit."""
 
-    def __init__(self, cache_dir: str, max_skip_frames: int | None = None):
+    def __init__(self, cache_dir: str, max_skip_frames: int | None = None, busy_poll_s: float | None = None):
         self.cache_dir = cache_dir
         self.max_skip_frames = max_skip_frames
+        self.busy_poll_s = busy_poll_s
         self.peak_rss_mb = float("nan")
         self.exit_code: int | None = None
 
@@ -102,6 +104,8 @@ class DaemonProcess:
                self.cache_dir, "--log-level", "WARNING"]
         if self.max_skip_frames is not None:
             cmd += ["--max-skip-frames", str(self.max_skip_frames)]
+        if self.busy_poll_s is not None:
+            cmd += ["--busy-poll", str(self.busy_poll_s)]
         self.ctx = zmq.Context()
         self.launched_s = time.perf_counter()
         self.proc = subprocess.Popen(cmd, cwd=REPO, env=_python_env(), stdout=subprocess.DEVNULL, stderr=self._log)
@@ -367,8 +371,10 @@ def startup(data_dir: Path, cache_dir: str) -> dict:
     return {"seconds": first_s, "peak_rss_mb": daemon.peak_rss_mb}
 
 
-def latency(data_dir: Path, cache_dir: str, seconds: float, max_skip_frames: int | None = None) -> dict:
-    """One subject (LATENCY_FILE at L2, seeded for 2 s) replayed at its rate through the daemon."""
+def latency(data_dir: Path, cache_dir: str, seconds: float, max_skip_frames: int | None = None,
+            busy_poll_s: float | None = None) -> dict:
+    """One subject (LATENCY_FILE at L2, seeded for 2 s) replayed at its rate through the daemon (with
+    `--busy-poll busy_poll_s` if given)."""
     from recordings.c3d import read_c3d
     import dataclasses
 
@@ -377,7 +383,7 @@ def latency(data_dir: Path, cache_dir: str, seconds: float, max_skip_frames: int
     seq = corrupt(dataclasses.replace(rec, points_m=rec.points_m[:n]), "L2", 1)
     frames = [(p, seq.true_labels(f) if f < seq.seed_frames else None)
               for f, p in enumerate(seq.points_m) if p is not None]
-    with DaemonProcess(cache_dir, max_skip_frames) as daemon:
+    with DaemonProcess(cache_dir, max_skip_frames, busy_poll_s) as daemon:
         daemon.wait_ready()
         result = replay(daemon, frames, seq.rate_hz, 0, 1, seq.seed_frames)
         status = daemon.request({"cmd": "status"}) or {}
@@ -586,6 +592,8 @@ def measure(data_dir: Path, quick: bool, cache_dir: str) -> dict:
     out["latency_floor"] = _repeated("latency floor (echo daemon)", runs, latency_floor, data_dir, seconds)
     out["latency_every_frame"] = skipped if quick else _repeated(
         "online latency (solve every frame)", runs, latency, data_dir, cache_dir, seconds, 0)
+    out["latency_busy_poll"] = _repeated("online latency (busy polling)", runs, latency, data_dir, cache_dir, seconds,
+                                         None, BUSY_POLL_S)
     out["scale"] = _guarded("scale", scale, data_dir, cache_dir, 3.0 if quick else 8.0,
                             SCALE_COUNTS[:2] if quick else SCALE_COUNTS)
     out["marker_scale"] = _guarded("scale (markers per subject)", marker_scale, cache_dir, 3.0 if quick else 8.0)
@@ -659,7 +667,8 @@ def report_lines(inproc: dict, speed: dict) -> list[str]:
         res = err(d) or f"{_f(d.get('seconds'), '{:.1f} s')} ({runs(d, 'seconds', '{:.1f}')})"
         lines.append(f"| {title} | {res} | {_f(d.get('peak_rss_mb'), '{:.0f}')} |")
     for key, title in (("latency", "online latency p50 / p99 / max, adaptive"),
-                       ("latency_every_frame", "online latency p50 / p99 / max, solve every frame")):
+                       ("latency_every_frame", "online latency p50 / p99 / max, solve every frame"),
+                       ("latency_busy_poll", f"online latency p50 / p99 / max, adaptive, `--busy-poll {BUSY_POLL_S:g}`")):
         d = speed.get(key, {})
         proc = d.get("processing_ms") or {}
         res = err(d) or (f"{d['p50_ms']:.2f} / {d['p99_ms']:.2f} / {d['max_ms']:.1f} ms (p99 {runs(d, 'p99_ms', '{:.2f}')}) "

@@ -47,6 +47,9 @@ def _parser() -> argparse.ArgumentParser:
     serve.add_argument("--cache-dir", metavar="DIR", help='JAX compilation cache ("" disables it)')
     serve.add_argument("--max-skip-frames", metavar="K", type=int,
                        help="frames the skeleton solve may be skipped in a row (0 = solve every frame)")
+    serve.add_argument("--busy-poll", metavar="S", type=float, dest="busy_poll_s",
+                       help="after each frame, wait for the next this long [s] without sleeping: lower latency "
+                            "for one core spinning while frames stream (default 0: off)")
     serve.add_argument("--log-level", default="INFO", type=str.upper, choices=LOG_LEVELS)
 
     label = sub.add_parser("label", help="label a C3D file offline (causal, same engine as the daemon)",
@@ -67,7 +70,7 @@ def _parser() -> argparse.ArgumentParser:
 def _serve(args) -> int:
     config = load_config(args.config, frames_endpoint=args.frames, publish_endpoint=args.publish,
                          control_endpoint=args.control, state_dir=args.state_dir, cache_dir=args.cache_dir,
-                         engine_max_skip_frames=args.max_skip_frames)
+                         busy_poll_s=args.busy_poll_s, engine_max_skip_frames=args.max_skip_frames)
     from service.daemon import Daemon, DaemonError  # after the config: a bad flag must not wait for jax
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):

@@ -121,6 +121,8 @@ def test_label_bad_output_directory(tmp_path, small_c3d):
         (["label", "x.c3d"], ["-o"]),
         (["label", "x.c3d", "-o", "y.c3d", "--seed-frames", "many"], ["--seed-frames", "many"]),
         (["serve", "--max-skip-frames", "-1"], ["max_skip_frames"]),
+        (["serve", "--busy-poll", "-0.5"], ["busy_poll_s"]),
+        (["serve", "--busy-poll", "often"], ["--busy-poll", "often"]),
         (["serve", "--log-level", "LOUD"], ["--log-level"]),
         (["dance"], ["dance"]),
         ([], ["required"]),

@@ -242,6 +242,25 @@ def test_garbage_then_valid_frame_is_processed(tmp_path):
     assert engine.inputs[0].points_m.dtype == np.float32
 
 
+def test_busy_polling_spins_only_while_frames_stream_and_serves_as_usual(tmp_path):
+    window_s = 0.3
+
+    def cpu_over_window() -> float:  # the daemon thread is the only busy one in this process
+        c0 = time.process_time()
+        time.sleep(window_s)
+        return time.process_time() - c0
+
+    with running(Daemon(free_config(tmp_path, busy_poll_s=2.0), FakeEngine())) as d:
+        idle = cpu_over_window()  # no frame yet: it sleeps in the poller
+        d.send(frame(1, labels=["A:M0", "", "", ""]))
+        assert d.next_message(pm.Labels).frame == 1
+        spinning = cpu_over_window()  # within busy_poll_s of a frame: it polls without sleeping
+        d.send(frame(2))
+        assert d.next_message(pm.Labels).frame == 2
+        assert d.request({"cmd": "ping"})["ok"] is True  # commands are served while it spins
+    assert spinning > 0.3 * window_s and spinning > 3 * idle, (idle, spinning)
+
+
 def test_out_of_order_and_repeated_frames_are_counted_and_skipped(tmp_path):
     engine = FakeEngine()
     with running(Daemon(free_config(tmp_path), engine)) as d:
