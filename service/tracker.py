@@ -777,32 +777,39 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     ks = np.flatnonzero(counts >= SHAPE_MIN_LABELED)
     if len(ks) == 0:
         return changed
-    groups = [np.flatnonzero(labeled & slots & (seg == k)) for k in ks]
-    # each segment's labeled slots, then its unlabeled ones: a marker re-acquired on another's point (the
-    # ankle marker on the fifth metatarsal's, which was hidden too) is put back by handing its point to the
-    # unlabeled marker whose place in the layout it is
-    spare = [np.flatnonzero(~labeled & slots & (seg == k)) for k in ks]
-    slot_of = [np.concatenate([g, sp]) for g, sp in zip(groups, spare)]
-    width = max(len(g) for g in groups)
+    # each checked segment's labeled slots as one padded row (segment order, then marker order), built with
+    # array operations: a list of per-segment lookups cost more than the registration itself
+    members = np.flatnonzero(labeled & slots & (counts[np.maximum(seg, 0)] >= SHAPE_MIN_LABELED) & (seg >= 0))
+    members = members[np.argsort(seg[members], kind="stable")]
+    row = np.searchsorted(ks, seg[members])
+    n_lab = counts[ks]
+    col = np.arange(len(members)) - np.concatenate([[0], np.cumsum(n_lab)[:-1]])[row]
+    width = int(n_lab.max())
     A = np.zeros((len(ks), width, 3))
     B = np.zeros((len(ks), width, 3))
     w = np.zeros((len(ks), width), bool)
-    for r, g in enumerate(groups):
-        A[r, : len(g)], B[r, : len(g)], w[r, : len(g)] = layout[g], cur[g], True
+    A[row, col], B[row, col], w[row, col] = layout[members], cur[members], True
     rms0 = _kabsch_rms(A, B, w)
     # a segment fits when its labels sit about as well as they did in calibration: a few times its markers'
     # own layout residual (1-2 mm on a foot), and never worse than SHAPE_MIN_RMS_M. A fixed 12 mm let a toe
     # label on the fifth metatarsal's point pass (10 mm, 85_12 at L2) for 1.6 s.
     # (only where a relabelling could then be taken on clear evidence, below: checking the others costs time)
-    typical = np.array([np.sqrt(np.mean(model.layout_rms_m[g] ** 2)) for g in groups])
-    can_clear = (np.array([len(g) for g in groups]) >= SHAPE_CLEAR_MIN_LABELS) & (typical <= SHAPE_CLEAR_LAYOUT_M)
+    typical = np.sqrt(np.bincount(row, model.layout_rms_m[members] ** 2, minlength=len(ks)) / n_lab)
+    can_clear = (n_lab >= SHAPE_CLEAR_MIN_LABELS) & (typical <= SHAPE_CLEAR_LAYOUT_M)
     tol = np.where(can_clear, np.minimum(SHAPE_MIN_RMS_M, np.maximum(SHAPE_FIT_FLOOR_M, 4.0 * typical)), SHAPE_MIN_RMS_M)
-    for k in ks[rms0 <= tol]:
-        st.shape_votes.pop(int(k), None)
     fits = rms0 <= tol
+    if st.shape_votes:
+        for k in ks[fits]:
+            st.shape_votes.pop(int(k), None)
     # every permutation of every misfitting segment's labels, registered in one batch (padded to the
     # widest segment): one call instead of one per segment, which cost more than the arithmetic
     flagged = np.flatnonzero(~fits)
+    groups = {r: members[row == r] for r in flagged}
+    # each segment's labeled slots, then its unlabeled ones: a marker re-acquired on another's point (the
+    # ankle marker on the fifth metatarsal's, which was hidden too) is put back by handing its point to the
+    # unlabeled marker whose place in the layout it is
+    spare = {r: np.flatnonzero(~labeled & slots & (seg == ks[r])) for r in flagged}
+    slot_of = {r: np.concatenate([groups[r], spare[r]]) for r in flagged}
     proposals = {}
     all_maps = [_relabellings(len(groups[r]), len(groups[r]) + len(spare[r])) for r in flagged]
     start = np.concatenate([[0], np.cumsum([len(mp) for mp in all_maps], dtype=int)])
