@@ -85,7 +85,7 @@ class ServiceConfig:
     busy_poll_s: float = 0.0
     """For this long [s] after each frame the daemon waits for the next by polling without sleeping (0 = it
     sleeps until a message arrives). A stream faster than 1/busy_poll_s keeps one core spinning between
-    frames, and in exchange the CPU stays awake: on our 2-core machine the latency p50 went 2.0 -> 1.6 ms
+    frames, and in exchange the CPU stays awake: on our 2-core machine the latency p50 went 2.3 -> 1.9 ms
     at 120 Hz (BENCHMARK.md). For a dedicated capture machine; an idle daemon never spins."""
     engine: EngineConfig = dataclasses.field(default_factory=EngineConfig)
 
