@@ -15,6 +15,14 @@ class ConfigError(ValueError):
     """A configuration file or flag is invalid; the message says what is valid."""
 
 
+def _check_non_negative(config) -> None:
+    """Every number of a config is a size, a time or a distance: none may be negative."""
+    for f in dataclasses.fields(config):
+        v = getattr(config, f.name)
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and v < 0:
+            raise ConfigError(f"{f.name} must be >= 0, got {v}")
+
+
 @dataclasses.dataclass(frozen=True)
 class EngineConfig:
     """Tracking-engine parameters."""
@@ -56,10 +64,7 @@ class EngineConfig:
     """Frames with more points are rejected as malformed (a capture volume never sees that many)."""
 
     def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, (int, float)) and not isinstance(v, bool) and v < 0:
-                raise ConfigError(f"{f.name} must be >= 0, got {v}")
+        _check_non_negative(self)
         if self.max_markers < 4:
             raise ConfigError(f"max_markers must be >= 4, got {self.max_markers}")
 
@@ -90,10 +95,7 @@ class ServiceConfig:
     engine: EngineConfig = dataclasses.field(default_factory=EngineConfig)
 
     def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, (int, float)) and not isinstance(v, bool) and v < 0:
-                raise ConfigError(f"{f.name} must be >= 0, got {v}")
+        _check_non_negative(self)
 
 
 def _build(cls, table: dict, where: str):

@@ -779,7 +779,7 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
         return changed
     # each checked segment's labeled slots as one padded row (segment order, then marker order), built with
     # array operations: a list of per-segment lookups cost more than the registration itself
-    members = np.flatnonzero(labeled & slots & (counts[np.maximum(seg, 0)] >= SHAPE_MIN_LABELED) & (seg >= 0))
+    members = np.flatnonzero(labeled & slots & (counts[np.maximum(seg, 0)] >= SHAPE_MIN_LABELED))  # slots: seg >= 0
     members = members[np.argsort(seg[members], kind="stable")]
     row = np.searchsorted(ks, seg[members])
     n_lab = counts[ks]
