@@ -91,6 +91,7 @@ SEARCH_INLIER_M = 0.012  # ... and a marker with a point this close to where the
 #: subject was lost) is looked for by its own layout, as a free rigid body whose joint lies this close to
 #: its bone's length from the grandparent joint (`_search_free_segment`).
 SEARCH_BONE_TOL_M = 0.05
+RIVAL_JOINT_MARGIN_M = 0.05  # a search's points stay unassigned if a rival segment's joint fits within this of its own
 SHAPE_EVERY_FRAMES = 4  # segment layouts are checked on every this many frames
 SHAPE_LAYOUT_TOL_M = 0.02  # only markers that kept their offset in their segment this well [m] take part ...
 SHAPE_MIN_RMS_M = 0.012  # a segment whose labels fit its calibrated marker layout this well is not re-checked ...
@@ -617,10 +618,41 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
             # triangle matched (a foot's three were once matched to two of them and the shank's marker:
             # HDM05 at L3, T-pose mode)
             assignment = _unambiguous(_search_free_segment(model, pw, points, pool, los, k, observed), 1, 4)
+        if assignment and _rival_fits(model, pw, points, assignment, k, np.unique(seg_of[lost])):
+            assignment = None
         if assignment:
             found.update(assignment)
             pool = pool[~np.isin(pool, list(assignment.values()))]
     return found
+
+
+def _joint_residual(off: np.ndarray, o: np.ndarray, pts: np.ndarray) -> tuple[float, float]:
+    """Segment markers at offsets `off` (n, 3) registered onto points `pts` (n, 3): (RMS of the markers'
+    misfit, distance between where that puts the segment's joint and `o`)."""
+    R, t = rigid_motion(off, pts)
+    return float(np.sqrt(np.mean(np.sum((off @ R.T + t - pts) ** 2, 1)))), float(_norm(t - o))
+
+
+def _rival_fits(model: SubjectModel, pw: np.ndarray, points: np.ndarray, assignment: dict[int, int], k: int,
+                segments: np.ndarray) -> bool:
+    """Whether the points a search gave segment k fit another segment searched for (`segments`) about as
+    well: its markers' layout as well, and its joint not clearly farther. The two hands, hidden together,
+    are each other's mirror image; three markers alone cannot tell them apart, and when neither elbow is
+    held (the upper arms and trunk hidden too) a stale joint cannot either: the left forearm's search took
+    the right hand's three points (tennis serve at L3) and kept them for 140 frames."""
+    off, seg = model.marker_offsets_m, model.marker_segment
+    mk = np.array(list(assignment))
+    pts = points[list(assignment.values())]
+    rms, joint = _joint_residual(off[mk], pw[k], pts)
+    for k2 in segments:
+        idx = np.flatnonzero(seg == k2)
+        if k2 == k or len(idx) < len(mk):
+            continue
+        for perm in itertools.permutations(idx, len(mk)):
+            rms2, joint2 = _joint_residual(off[list(perm)], pw[k2], pts)
+            if rms2 < max(SEARCH_INLIER_M, 1.5 * rms) and joint2 < joint + RIVAL_JOINT_MARGIN_M:
+                return True
+    return False
 
 
 def _placed(off: np.ndarray, los: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarray,

@@ -244,6 +244,29 @@ def test_a_forearm_swung_out_of_reach_of_where_the_fit_left_its_elbow_is_found_b
     assert found == {int(i): int(i) for i in np.flatnonzero(on_forearm)}
 
 
+def test_points_that_fit_the_mirror_segment_as_well_are_not_given_to_either():
+    """Left and right forearms carry mirror-image marker layouts, and three markers of one fit three of
+    the other's by a rotation. Points the left forearm's search took (three of the right hand's) stay
+    unassigned while the right forearm, searched for too, fits them as well with its elbow about as near;
+    they are the left's when the right is not searched for, or when its elbow is far from them."""
+    seg = np.array([5, 5, 5, 5, 7, 7, 7, 7])
+    left = np.array([[0.0, 0.0, -0.25], [0.03, 0.0, -0.26], [-0.03, 0.0, -0.26], [0.0, 0.02, -0.33]])
+    off = np.vstack([left, left * [1.0, -1.0, 1.0]])  # the right is the left mirrored
+    model = tracker.SubjectModel("P", tuple("abcdefgh"), seg, off, np.zeros((14, 3)), True)
+    R = Rotation.from_rotvec([0.3, -0.5, 1.2]).as_matrix()
+    elbow_r = np.array([0.2, 0.4, 1.3])
+    points = off[4:7] @ R.T + elbow_r  # three of the right forearm's markers
+    pw = np.zeros((14, 3))  # both elbows stale, a few centimetres apart
+    pw[7] = elbow_r + [0.0, 0.0, 0.03]
+    pw[5] = pw[7] + [0.0, 0.02, 0.0]
+    left_gets = {0: 0, 1: 2, 2: 1}  # mirrored, the second and third markers trade places
+    assert tracker._joint_residual(off[[0, 2, 1]], pw[5], points)[0] < 0.002
+    assert tracker._rival_fits(model, pw, points, left_gets, 5, np.array([5, 7]))
+    assert not tracker._rival_fits(model, pw, points, left_gets, 5, np.array([5]))
+    pw[7] = elbow_r + [0.0, 0.3, 0.0]  # the right elbow held 30 cm away: it cannot be the right forearm
+    assert not tracker._rival_fits(model, pw, points, left_gets, 5, np.array([5, 7]))
+
+
 def test_kabsch_rms_matches_a_kabsch_by_svd():
     """The closed-form misfit equals the residual of scipy's best rotation, masked points left out."""
     rng = np.random.default_rng(4)
