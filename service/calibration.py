@@ -541,13 +541,28 @@ def world_transforms(t_root: np.ndarray, R_parent_segment: np.ndarray, joint_off
     return Rs, ps
 
 
-# `reassign` moves a marker across a joint of its segment (to its parent or a child), or farther only to a
-# segment that carries it within REASSIGN_FAR_M (a hand calibrated onto the pelvis), and only when it was
-# seen in REASSIGN_MIN_SHARE of the frames: the solved poses follow the engine's own labels, and a marker
-# mislabeled or hidden most of the window "stays most still" on some segment or other (a left heel whose
-# labels wandered went to the right thigh).
+# `reassign` moves a marker across a joint of its segment (to its parent or a child), or farther only out
+# along the chain to a segment that carries it within REASSIGN_FAR_M (a hand calibrated onto the pelvis, the
+# hands resting on the hips through the calibration), and only when it was seen in REASSIGN_MIN_SHARE of
+# the frames: the solved poses follow the engine's own labels, and a marker mislabeled or hidden most of the
+# window "stays most still" on some segment or other (a left heel whose labels wandered went to the right
+# thigh). Never farther in toward the trunk: a hand held against the chest for the window is carried by the
+# chest about as well as by its forearm, and moved there it broke the fit as soon as the hand moved away
+# (CMU 135_02 at L3: two hand markers went to the trunk and the fit stayed 10-20 cm off for 2 s).
 REASSIGN_MIN_SHARE = 0.5
 REASSIGN_FAR_M = 0.01
+
+
+def _ancestors(k: int) -> set[int]:
+    up = set()
+    while PARENTS[k] >= 0:
+        k = PARENTS[k]
+        up.add(k)
+    return up
+
+
+# DESCENDANT[a, b]: segment b lies below segment a in the chain (a is one of its ancestors)
+DESCENDANT = np.array([[a in _ancestors(b) for b in range(len(PARENTS))] for a in range(len(PARENTS))])
 
 
 def reassign(positions_m: np.ndarray, Rs_world: np.ndarray, ps_world: np.ndarray, marker_segment: np.ndarray) -> np.ndarray:
@@ -564,7 +579,8 @@ def reassign(positions_m: np.ndarray, Rs_world: np.ndarray, ps_world: np.ndarray
     m = np.arange(len(out))
     parents = np.array(PARENTS)
     joined = (parents[None, :] == out[:, None]) | (parents[out][:, None] == np.arange(len(PARENTS))[None, :])
-    spread = np.where(joined | (np.arange(len(PARENTS))[None, :] == out[:, None]) | (spread < REASSIGN_FAR_M), spread, np.nan)
+    far = DESCENDANT[out] & (spread < REASSIGN_FAR_M)
+    spread = np.where(joined | (np.arange(len(PARENTS))[None, :] == out[:, None]) | far, spread, np.nan)
     best = np.nanargmin(np.where(np.isfinite(spread), spread, np.inf), axis=1)
     better = np.isfinite(spread[m, best]) & (spread[m, best] < 0.7 * spread[m, out]) & (spread[m, out] > 0.005)
     better &= np.isfinite(positions_m[..., 0]).sum(0) >= REASSIGN_MIN_SHARE * len(positions_m)

@@ -82,6 +82,10 @@ class EngineError(ValueError):
 HISTORY_FRAMES = 240  # labeled frames kept per subject for (re)calibration
 REFINE_RMS_M = 0.012  # a skeleton fitting its markers worse than this [m] RMS is re-aligned ...
 REFINE_EVERY_FRAMES = 240  # ... at most once per this many frames (then twice as long, ...)
+#: A refinement that moves a joint farther than this from where the skeleton had it is not taken: bones do
+#: not change length, so its solved poses were wrong (a subject lying prone moved joints by 25-40 cm,
+#: Clouthier KneeltoProne at L3).
+REFINE_MAX_JOINT_SHIFT_M = 0.1
 REFINE_APPLY_FRAMES = 120  # a refinement started at frame f takes effect at frame f + this
 CALIBRATE_CATCH_UP_SOLVES = 2  # solves that bring a calibration's pose up to the frame it takes effect
 CALIBRATE_APPLY_FRAMES = 60  # a calibration (50-300 ms of work beside the frame loop) started at frame f takes effect at f + this
@@ -627,7 +631,7 @@ def refined_model(solver_spec: tuple, model, hist, t0, R0, n_frames: int = 40, r
     """A better skeleton for `model` from labeled history (F, M, 3): poses of up to n_frames frames are
     solved with the current model, markers move to the segment that carries them best, then the least-
     squares alignment gives new offsets; twice. Pure (no engine state), so it can run in the helper process.
-    None if the history is too thin. `solver_spec`: the arguments of the PoseSolver it solves with (the helper
+    None if the history is too thin or its poses were wrong (REFINE_MAX_JOINT_SHIFT_M). `solver_spec`: the arguments of the PoseSolver it solves with (the helper
     process builds its own, once)."""
     solver = _solver(solver_spec)
     good = np.flatnonzero(np.isfinite(hist[..., 0]).sum(1) >= 8)
@@ -635,7 +639,7 @@ def refined_model(solver_spec: tuple, model, hist, t0, R0, n_frames: int = 40, r
     if len(good) < 12:
         return None
     pick = good[np.linspace(0, len(good) - 1, min(n_frames, len(good))).astype(int)]
-    marker_segment0, layout_rms_m = model.marker_segment, model.layout_rms_m
+    marker_segment0, layout_rms_m, joints0 = model.marker_segment, model.layout_rms_m, model.joint_offsets_m
     frames = hist[pick]
     for _ in range(rounds):
         # poses of the picked frames, newest first, each solve warm-started from the one after it
@@ -656,6 +660,8 @@ def refined_model(solver_spec: tuple, model, hist, t0, R0, n_frames: int = 40, r
             off[moved] = np.nanmean(local[:, moved], axis=0)
         off, joints = calibration.refine(frames, Rs, seg, off, model.joint_offsets_m)
         model = dataclasses.replace(model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints)
+    if np.linalg.norm(model.joint_offsets_m - joints0, axis=1).max() > REFINE_MAX_JOINT_SHIFT_M:
+        return None  # the poses it solved were wrong, not the skeleton (see REFINE_MAX_JOINT_SHIFT_M)
     # the layout is vouched for by the calibration's frames (given labels, in seeded mode), never by the
     # engine's own labels, which may hold the very permutations the layout check is there to undo: a
     # marker that changed segment here loses its say

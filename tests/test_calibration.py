@@ -303,7 +303,9 @@ def test_reassign_moves_a_marker_only_to_a_segment_that_carries_it():
     """Refinement's reassignment: a hand marker calibrated onto the pelvis goes to the forearm that carries
     it within millimetres (far across the body, but rigid with it); a heel whose labels wandered onto the
     other leg does not go to that leg's thigh, which carries it no better than within centimetres; a marker
-    seen in a few frames of the window keeps its segment (a few frames fit any segment)."""
+    seen in a few frames of the window keeps its segment (a few frames fit any segment); a finger marker
+    the torso carries better than its loosely fitted forearm (the hand held against the chest) stays on
+    the forearm: far moves go out along the chain, never in toward the trunk."""
     from service.calibration import S, reassign, world_transforms
 
     rng = np.random.default_rng(2)
@@ -320,10 +322,14 @@ def test_reassign_moves_a_marker_only_to_a_segment_that_carries_it():
     heel[::5] = on(S["l_foot"], np.array([-0.05, 0.0, -0.05]), 0.001)[::5]  # ... and came back now and then
     glimpsed = np.full((F, 3), np.nan)
     glimpsed[:4] = on(S["r_shank"], np.array([0.04, 0.0, -0.1]), 0.0005)[:4]
-    positions = np.stack([hand, heel, glimpsed], axis=1)
-    current = np.array([S["pelvis"], S["l_foot"], S["l_foot"]])
+    # the right hand held against the chest: its forearm moves with the torso, give or take a few degrees
+    Rs[:, S["r_forearm"]] = Rs[:, S["torso"]] @ Rotation.from_rotvec(rng.normal(0.0, 0.05, (F, 3))).as_matrix()
+    ps[:, S["r_forearm"]] = ps[:, S["torso"]] + rng.normal(0.0, 0.005, (F, 3))
+    on_chest = on(S["torso"], np.array([0.1, 0.05, 0.0]), 0.002)  # carried by the torso within 3 mm ...
+    positions = np.stack([hand, heel, glimpsed, on_chest], axis=1)
+    current = np.array([S["pelvis"], S["l_foot"], S["l_foot"], S["r_forearm"]])  # ... and given the forearm
     got = [SEGMENTS[k] for k in reassign(positions, Rs, ps, current)]
-    assert got == ["l_forearm", "l_foot", "l_foot"]
+    assert got == ["l_forearm", "l_foot", "l_foot", "r_forearm"]
 
 
 def _seed_calibration(file: str, subject: str, level: str, seed: int) -> dict[str, str]:

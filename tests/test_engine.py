@@ -551,3 +551,46 @@ def test_two_labels_crossed_by_nnt_are_uncrossed(pair):
         if f >= f_cross + 15:  # the skip budget (10 frames) and a fit later
             wrong += [f for g, t in zip(given, truth) if g and g.split(":")[-1] != t.split(":")[-1]]
     assert not wrong, f"{len(wrong)} wrong labels, first at frame {wrong[0]}"
+
+
+def test_refinement_corrects_a_skeleton_and_refuses_to_stretch_its_bones():
+    """`refined_model` (run in the helper process when the skeleton fits poorly) moves a wrist marker that a
+    calibration put on the pelvis to the forearm that carries it, and with joints misplaced by 3 cm the
+    refined skeleton fits the markers better than the given one. The same skeleton refined on the motion of a body a third taller would need its
+    joints moved by more than REFINE_MAX_JOINT_SHIFT_M: bones do not change length, so the poses it solved
+    were wrong and the refinement is refused."""
+    from protocol.skeleton import SEGMENTS
+    from scipy.spatial.transform import Rotation
+
+    from service.engine import REFINE_MAX_JOINT_SHIFT_M, refined_model
+    from service.tracker import SubjectModel
+
+    def refine(perf, model):  # on the last 2 s of the performance, as the engine would
+        R0 = Rotation.from_quat(perf.rotations_xyzw[-1]).as_matrix()
+        return refined_model(Engine()._solver_spec, model, perf.recording.points_m[-240:], perf.root_position_m[-1], R0)
+
+    perf = perform(3, duration_s=6.0, height_m=1.5)
+    wrist = next(i for i, n in enumerate(perf.marker_names) if n.endswith("LWRA"))
+    seg, off = perf.marker_segment.copy(), perf.marker_offsets_m.copy()
+    seg[wrist], off[wrist] = SEGMENTS.index("pelvis"), [0.1, 0.2, 0.0]
+    rng = np.random.default_rng(1)
+    joints = perf.joint_offsets_m + np.vstack([np.zeros(3), rng.normal(0.0, 0.03 / np.sqrt(3), (13, 3))])
+    model = SubjectModel("P", perf.marker_names, seg, off, joints, True)
+
+    refined = refine(perf, model)
+    assert SEGMENTS[refined.marker_segment[wrist]] == "l_forearm"
+    solver = Engine().solver
+
+    def rms(m, f):
+        R = Rotation.from_quat(perf.rotations_xyzw[f]).as_matrix()
+        points = perf.recording.points_m[f]
+        fit = solver.fit(perf.root_position_m[f], R, m.joint_offsets_m, m.marker_segment, m.marker_offsets_m,
+                         points, np.ones(len(points), bool))
+        return fit.residual_rms_m
+
+    frames = range(len(perf.recording.points_m) - 200, len(perf.recording.points_m), 40)
+    assert np.mean([rms(refined, f) for f in frames]) < 0.5 * np.mean([rms(model, f) for f in frames])
+
+    taller = perform(3, duration_s=6.0, height_m=2.0)
+    assert np.linalg.norm(taller.joint_offsets_m - perf.joint_offsets_m, axis=1).max() > REFINE_MAX_JOINT_SHIFT_M
+    assert refine(taller, refined) is None
