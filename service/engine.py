@@ -89,6 +89,7 @@ REFINE_MAX_JOINT_SHIFT_M = 0.1
 REFINE_APPLY_FRAMES = 120  # a refinement started at frame f takes effect at frame f + this
 CALIBRATE_CATCH_UP_SOLVES = 2  # solves that bring a calibration's pose up to the frame it takes effect
 CALIBRATE_APPLY_FRAMES = 60  # a calibration (50-300 ms of work beside the frame loop) started at frame f takes effect at f + this
+HELPER_JOB_S = 0.3  # the time one calibration or refinement takes in the helper process (`_queue_frames`)
 DISCOVER_FRAMES = 60  # frames an unexplained point must ride on an automatic subject to become a marker
 
 
@@ -366,8 +367,9 @@ class Engine:
         if s.model.has_skeleton or s.state.frames < s.next_calibration_frame or len(s.history) < 12:
             return
         s.next_calibration_frame = s.state.frames + 120
+        delay = max(CALIBRATE_APPLY_FRAMES, self._queue_frames(s))
         job = self._worker().submit(calibration.calibrate_from_history, np.stack(s.history))
-        s.calibration_job = (job, s.state.frames + CALIBRATE_APPLY_FRAMES)
+        s.calibration_job = (job, s.state.frames + delay)
 
     def _maybe_refine(self, s: _Subject) -> None:
         """Re-align the skeleton to the recent labeled history when it fits the markers poorly (the
@@ -395,8 +397,19 @@ class Engine:
         s.refine_interval = min(2 * s.refine_interval, 20 * REFINE_EVERY_FRAMES) if s.refine_interval else REFINE_EVERY_FRAMES
         s.next_refine_frame = st.frames + s.refine_interval
         hist = np.stack(s.history)
+        delay = max(REFINE_APPLY_FRAMES, self._queue_frames(s))
         job = self._worker().submit(refined_model, self._solver_spec, s.model, hist, st.t_root_m.copy(), st.R_parent_segment.copy())
-        s.refine_job = (job, st.frames + REFINE_APPLY_FRAMES)
+        s.refine_job = (job, st.frames + delay)
+
+    def _queue_frames(self, s: _Subject) -> int:
+        """Frames until a job submitted now for subject s is done, behind the jobs queued before it: the
+        helper process runs them one at a time, HELPER_JOB_S each, so with k queued it is done (k + 1) *
+        HELPER_JOB_S from now. A job takes effect no earlier, so the frame that takes it need not wait for
+        it (three subjects seeded together at 120 Hz stalled the frame loop for 0.25 s waiting on the third
+        calibration). Counted from the jobs' schedule, not their progress, so `label` and the daemon still
+        take each result at the same frame."""
+        queued = sum((o.calibration_job is not None) + (o.refine_job is not None) for o in self._subjects.values())
+        return (queued + 1) * max(1, round(HELPER_JOB_S / max(s.state.acc_dt_s, 1e-3)))
 
     def _worker(self):
         return worker.shared()

@@ -242,6 +242,31 @@ def test_two_seeded_subjects_share_no_point():
     assert s.accuracy >= 0.97 and s.precision >= 0.99, s.worst_markers()
 
 
+def test_calibrations_queued_together_take_effect_one_job_apart():
+    """Three subjects seeded together at 120 Hz ask the helper process for three calibrations at the same
+    frame. It runs them one at a time, HELPER_JOB_S each, so the k-th takes effect no earlier than k of
+    them from then (after CALIBRATE_APPLY_FRAMES at the earliest), instead of all at the same frame, where
+    the frame loop stalled waiting for the third (0.25 s in the benchmark's subject scan). The schedule is
+    counted in frames, so it is the same run after run, and every subject is tracked on its skeleton."""
+    from service.engine import CALIBRATE_APPLY_FRAMES, HELPER_JOB_S
+
+    rec, _ = multi_perform([8, 9, 10], spacing_m=2.5, duration_s=4.5)
+    seq = corrupt(rec, "L0", 8)
+    engine = Engine()
+    calibrated: dict[str, int] = {}
+    for f, points in enumerate(seq.points_m):
+        labels = seq.true_labels(f) if f < seq.seed_frames else None
+        engine.step(FrameInput("default", f, t_ns(f, seq.rate_hz), points, labels))
+        for name in engine.subjects():
+            if name not in calibrated and engine.describe(name)["has_skeleton"]:
+                calibrated[name] = f
+    assert len(calibrated) == 3, calibrated
+    job = round(HELPER_JOB_S * seq.rate_hz)
+    first = min(calibrated.values())
+    assert sorted(calibrated.values()) == [first, first - CALIBRATE_APPLY_FRAMES + 2 * job,
+                                           first - CALIBRATE_APPLY_FRAMES + 3 * job], calibrated
+
+
 # ------------------------------------------------------------------ bad input
 TRACKED = 400  # frames tracked_engine runs: past the seed (240) and the calibration taking effect (+120)
 
