@@ -86,9 +86,9 @@ REFINE_EVERY_FRAMES = 240  # ... at most once per this many frames (then twice a
 #: not change length, so its solved poses were wrong (a subject lying prone moved joints by 25-40 cm,
 #: Clouthier KneeltoProne at L3).
 REFINE_MAX_JOINT_SHIFT_M = 0.1
-REFINE_APPLY_FRAMES = 120  # a refinement started at frame f takes effect at frame f + this
+REFINE_APPLY_FRAMES = 120  # a refinement started at frame f takes effect at frame f + this (later behind a queue)
 CALIBRATE_CATCH_UP_SOLVES = 2  # solves that bring a calibration's pose up to the frame it takes effect
-CALIBRATE_APPLY_FRAMES = 60  # a calibration (50-300 ms of work beside the frame loop) started at frame f takes effect at f + this
+CALIBRATE_APPLY_FRAMES = 60  # a calibration (50-300 ms of work beside the frame loop) started at frame f takes effect at f + this (later behind a queue)
 HELPER_JOB_S = 0.3  # the time one calibration or refinement takes in the helper process (`_queue_frames`)
 DISCOVER_FRAMES = 60  # frames an unexplained point must ride on an automatic subject to become a marker
 
@@ -406,8 +406,9 @@ class Engine:
         helper process runs them one at a time, HELPER_JOB_S each, so with k queued it is done (k + 1) *
         HELPER_JOB_S from now. A job takes effect no earlier, so the frame that takes it need not wait for
         it (three subjects seeded together at 120 Hz stalled the frame loop for 0.25 s waiting on the third
-        calibration). Counted from the jobs' schedule, not their progress, so `label` and the daemon still
-        take each result at the same frame."""
+        calibration). Counted from the jobs' schedule, not their progress (a job done but not yet taken
+        still counts: the estimate errs late, never early), so `label` and the daemon still take each
+        result at the same frame."""
         queued = sum((o.calibration_job is not None) + (o.refine_job is not None) for o in self._subjects.values())
         return (queued + 1) * max(1, round(HELPER_JOB_S / max(s.state.acc_dt_s, 1e-3)))
 
