@@ -410,7 +410,8 @@ class Engine:
         still counts: the estimate errs late, never early), so `label` and the daemon still take each
         result at the same frame."""
         queued = sum((o.calibration_job is not None) + (o.refine_job is not None) for o in self._subjects.values())
-        return (queued + 1) * max(1, round(HELPER_JOB_S / max(s.state.acc_dt_s, 1e-3)))
+        dt = max(s.state.acc_dt_s, 1e-3) if s.state.acc_dt_s > 0 else 1.0 / 120  # one just found has no interval yet
+        return (queued + 1) * max(1, round(HELPER_JOB_S / dt))
 
     def _worker(self):
         return worker.shared()

@@ -204,6 +204,25 @@ def test_automatic_tpose_subject(marker_set):
     assert d["has_skeleton"] and len(d["markers"]) == len(seq.marker_names)
 
 
+def test_an_automatic_subject_takes_its_skeleton_one_calibration_period_after_it_appears():
+    """A subject found in a T-pose has no frame interval of its own yet; its calibration still takes
+    effect CALIBRATE_APPLY_FRAMES frames after it starts, on the frame after the subject appears (it once
+    waited 300 frames, taking 0.3 s of helper time at an assumed 1 ms per frame: HDM_mm at L3 in T-pose mode
+    lost 4 points)."""
+    from service.engine import CALIBRATE_APPLY_FRAMES
+
+    seq = corrupt(perform(7, duration_s=4.0).recording, "L0", 7)
+    engine = Engine(EngineConfig(tpose_auto=True))
+    appeared = skeleton = None
+    for f, points in enumerate(seq.points_m):
+        _, st = engine.step(FrameInput("default", f, t_ns(f, seq.rate_hz), points, None))
+        if appeared is None and st.new_subjects:
+            appeared = f
+        if skeleton is None and appeared is not None and engine.describe("S1")["has_skeleton"]:
+            skeleton = f
+    assert appeared is not None and skeleton == appeared + 1 + CALIBRATE_APPLY_FRAMES, (appeared, skeleton)
+
+
 def test_a_marker_reconstructed_twice_is_one_marker_of_an_automatic_subject():
     """Three markers each come with a repeat 0-2 mm away in every frame (as HDM05's `*N` points repeat
     LFHD, CLAV and LFWT): the T-pose subject gets one marker for each, the repeats stay unlabeled and are
