@@ -91,6 +91,9 @@ CALIBRATE_CATCH_UP_SOLVES = 2  # solves that bring a calibration's pose up to th
 CALIBRATE_APPLY_FRAMES = 60  # a calibration (50-300 ms of work beside the frame loop) started at frame f takes effect at f + this (later behind a queue)
 HELPER_JOB_S = 0.3  # the time one calibration or refinement takes in the helper process (`_queue_frames`)
 DISCOVER_FRAMES = 60  # frames an unexplained point must ride on an automatic subject to become a marker
+#: Subjects are given phases 0..PHASES-1 (`tracker.new_state`), so the tracker's periodic work (every 2nd,
+#: 3rd, 4th frame) falls on different frames for different subjects: 12 covers every period it uses.
+PHASES = 12
 
 
 @dataclasses.dataclass
@@ -152,6 +155,7 @@ class Engine:
         self._candidates: dict[str, _TposeCandidate] = {}
         self._clocks: dict[str, _StreamClock] = {}
         self._auto_count = 0
+        self._phases: dict[str, int] = {}  # subject -> its phase (`_phase`)
         # what a helper process needs to build the same solver (`refined_model`)
         self._solver_spec = (config.max_markers, config.solver_max_steps, config.solver_rtol, config.prior_weight,
                              config.solver_atol)
@@ -233,7 +237,7 @@ class Engine:
                         z["layout_rms_m"] if "layout_rms_m" in z.files else None,
                     )
                     pos = np.where(z["ever_seen"][:, None], z["pos_m"], np.nan)
-                    st = tracker.new_state(model, pos, 0)
+                    st = tracker.new_state(model, pos, 0, phase=self._phase(model.name))
                     st.labeled[:] = False
                     st.dist_n, st.dist_mean_m, st.dist_var_m2 = z["dist_n"], z["dist_mean_m"], z["dist_var_m2"]
                     # files written before the long-memory statistics start them from the running ones
@@ -322,7 +326,7 @@ class Engine:
                 hist.append(np.concatenate([h, np.full((m - len(h), 3), np.nan)]))
         cur = _positions(markers, marks, points)
         hist.append(cur)
-        st = tracker.new_state(model, cur, frame.t_ns, np.stack(hist))
+        st = tracker.new_state(model, cur, frame.t_ns, np.stack(hist), phase=self._phase(name))
         s = _Subject(frame.stream, model, st, hist, next_calibration_frame=0)
         self._subjects[name] = s
         return s, True
@@ -338,6 +342,14 @@ class Engine:
         idx = np.array([marks.get(m, -1) for m in s.model.markers], np.int32)
         res = dataclasses.replace(res, point_index=idx)
         return self._output(s, frame, res, keep)
+
+    def _phase(self, name: str) -> int:
+        """The subject's phase: kept for its life (a subject rebuilt with new markers keeps it); a new one
+        takes the phase fewest current subjects have, the lowest first (a lone subject runs at phase 0)."""
+        if name not in self._phases:
+            used = collections.Counter(self._phases[n] for n in self._subjects if n in self._phases)
+            self._phases[name] = min(range(PHASES), key=lambda k: (used[k], k))
+        return self._phases[name]
 
     def _maybe_calibrate(self, s: _Subject, frame) -> None:
         """Fit a skeleton once an upright pose is in the labeled history; retry every second if not. The
@@ -467,7 +479,7 @@ class Engine:
         model = tracker.SubjectModel(name, markers, np.zeros(m, int), np.zeros((m, 3)), np.zeros((14, 3)), False)
         # the tracker starts from the window's last positions; markers unseen in the last frame coast
         cur = hist[-1]
-        st = tracker.new_state(model, np.where(np.isfinite(cur[:, :1]), cur, ref), frame.t_ns, hist)
+        st = tracker.new_state(model, np.where(np.isfinite(cur[:, :1]), cur, ref), frame.t_ns, hist, phase=self._phase(name))
         st.labeled = np.isfinite(cur[:, 0])
         s = _Subject(frame.stream, model, st, collections.deque(list(hist), maxlen=HISTORY_FRAMES), auto=True)
         self._subjects[name] = s

@@ -75,6 +75,8 @@ RELOCATE_GATE_FACTOR = 0.5  # ... within this times reacquire_gate_m (the rigid 
 #: error 1-2 cm), the whole cloud on 1 of 4 (its limbs had moved: 6 of 41 markers within the gate at the
 #: true shift).
 RELOCATE_TRUNK_SHARE = 0.5
+RELOCATE_EAGER_FRAMES = 12  # a lost subject is looked for on each of its first this many frames lost ...
+RELOCATE_EVERY_FRAMES = 4  # ... then on every this many frames
 TRUNK_SEGMENTS = (0, 1, 2, 3)  # indices in protocol.skeleton.SEGMENTS
 #: A pause in a subject's frames longer than this [s] (a stream paused and resumed, a sender that stalled,
 #: a daemon thinning a long backlog never leaves one this long) leaves every track stale: the subject moved
@@ -182,7 +184,8 @@ class TrackState:
     t_root_m: np.ndarray  # (3,)
     R_parent_segment: np.ndarray  # (14, 3, 3)
     skipped: int = 0  # solves skipped in a row
-    frames: int = 0
+    frames: int = 0  # frames processed, counted from the subject's phase (`new_state`)
+    lost_frames: int = 0  # frames running on which the subject was lost (fewer than 4 labels after tracking)
     last_labeled_t_ns: int = 0
     fit_rms_m: float = float("nan")  # of the latest completed fit
     fit_iterations: int = 0  # of the latest completed fit
@@ -216,9 +219,13 @@ class StepResult:
     positions_m: np.ndarray | None = None  # (M, 3) position of the point each marker is labeled with, NaN = none
 
 
-def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m: np.ndarray | None = None) -> TrackState:
+def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m: np.ndarray | None = None,
+              phase: int = 0) -> TrackState:
     """Start tracking from known marker positions (M, 3; NaN = unseen), with optional labeled history
-    (F, M, 3) to seed the rigid-partner statistics."""
+    (F, M, 3) to seed the rigid-partner statistics. The frame count starts at `phase`: the periodic work
+    (layout checks, searches, repairs, full rigid checks) runs on frames chosen by that count, so subjects
+    given different phases do it on different frames instead of all on the same one (8 subjects started
+    together: a 28 ms frame every 4th, against 9 ms mean)."""
     m = model.n_markers
     seen = np.isfinite(positions_m[:, 0])
     st = TrackState(
@@ -241,6 +248,7 @@ def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m
         acc_m_s2=np.zeros((m, 3)),
         vel_measured=np.zeros(m, bool),
         hidden_frames=np.zeros(m, int),
+        frames=phase,
     )
     if history_m is not None:
         for frame in history_m:
@@ -533,12 +541,18 @@ def _relocate(st: TrackState, points: np.ndarray, cand: np.ndarray, gate_m: floa
         c, s_ = np.cos(yaw), np.sin(yaw)
         R = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
         t = center - c_src @ R.T
+        pairs = None
         for it in range(12):  # ICP, trimmed: pairs farther than a shrinking radius are left out
             X = src @ R.T + t
             d, j = tree.query(X)
-            inl = d < max(0.3 * 0.7**it, gate_m)
+            radius = max(0.3 * 0.7**it, gate_m)
+            inl = d < radius
             if inl.sum() < 3:
                 break
+            if radius == gate_m:  # the radius has stopped shrinking: the same pairs give the same motion again
+                if pairs is not None and np.array_equal(pairs, np.where(inl, j, -1)):
+                    break
+                pairs = np.where(inl, j, -1)
             R, t = rigid_motion(src[inl], near[j[inl]])
         X = src @ R.T + t
         n = int((tree.query(X)[0] < gate_m).sum())
@@ -1070,13 +1084,19 @@ def step(
         # probation keep ghosts out)
         widen = 1.0 + np.minimum(st.hidden_frames * dt / HIDDEN_WIDEN_S, MAX_HIDDEN_GATE_FACTOR - 1.0)
         gate_missing[use_skel] = config.reacquire_gate_m * widen[use_skel]
-    if labeled.sum() < 4:
+    lost = labeled.sum() < 4
+    st.lost_frames = st.lost_frames + 1 if lost else 0
+    if lost:
         # Lost (full occlusion, a restart from saved state, a subject that left the volume): look for the
         # subject's last known marker cloud in the unclaimed points nearby, registered rigidly (it came
         # back walking, elsewhere, turned); failing that, for every marker where it was last, coasting.
-        found = _relocate(st, points, ~taken, RELOCATE_GATE_FACTOR * config.reacquire_gate_m)
+        # A search costs 2-8 ms: after RELOCATE_EAGER_FRAMES it runs on every RELOCATE_EVERY_FRAMES-th frame
+        # only, so a subject that left the volume does not slow every frame of the others for as long as
+        # it stays away.
+        searching = st.lost_frames <= RELOCATE_EAGER_FRAMES or st.frames % RELOCATE_EVERY_FRAMES == 0
+        found = _relocate(st, points, ~taken, RELOCATE_GATE_FACTOR * config.reacquire_gate_m) if searching else None
         trunk = np.isin(model.marker_segment, TRUNK_SEGMENTS)
-        if found is None and model.has_skeleton and (trunk & st.ever_seen).sum() >= 4:
+        if searching and found is None and model.has_skeleton and (trunk & st.ever_seen).sum() >= 4:
             # the limbs moved too much to carry the whole cloud: the trunk alone
             found = _relocate(st, points, ~taken, config.reacquire_gate_m, RELOCATE_TRUNK_SHARE, trunk)
         if found is not None:  # only what the registration places well: the fit then finds the limbs

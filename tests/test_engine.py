@@ -286,6 +286,55 @@ def test_calibrations_queued_together_take_effect_one_job_apart():
                                            first - CALIBRATE_APPLY_FRAMES + 3 * job], calibrated
 
 
+
+def test_subjects_seeded_together_do_their_periodic_work_on_different_frames(monkeypatch):
+    """Four subjects seeded on the same frame would all run the layout check (the costliest periodic step,
+    ~1 ms each) on every 4th frame and nothing on the others: 8 subjects made a 28 ms frame every 4th.
+    Each is given its own phase, so every frame carries one check; a lone subject keeps phase 0."""
+    from service import tracker
+
+    checks: dict[int, list[str]] = {}  # frame -> the subjects that checked their layouts on it
+    real = tracker._relabel_by_shape
+    frame = [0]
+
+    def spy(model, st, *args):
+        checks.setdefault(frame[0], []).append(model.name)
+        return real(model, st, *args)
+
+    monkeypatch.setattr(tracker, "_relabel_by_shape", spy)
+    rec, _ = multi_perform([8, 9, 10, 11], spacing_m=2.5, duration_s=4.0)
+    seq = corrupt(rec, "L0", 8)
+    engine = Engine()
+    for f, points in enumerate(seq.points_m):
+        frame[0] = f
+        engine.step(FrameInput("default", f, t_ns(f, seq.rate_hz), points, seq.true_labels(f) if f < seq.seed_frames else None))
+    per_frame = [len(names) for f, names in checks.items()]
+    assert len({n for names in checks.values() for n in names}) == 4, checks
+    assert max(per_frame) == 1, sorted(checks.items())[-8:]
+    lone = Engine()
+    lone.step(FrameInput("default", 0, 0, np.eye(3), ["Solo:A", "Solo:B", "Solo:C"]))
+    assert lone._phases == {"Solo": 0}
+
+
+def test_a_subject_lost_long_is_looked_for_on_every_4th_frame(monkeypatch):
+    """Looking for a lost subject costs 2-8 ms: on each of its first RELOCATE_EAGER_FRAMES frames lost,
+    then on every RELOCATE_EVERY_FRAMES-th, so a subject that left the volume does not slow every frame
+    of the others for as long as it is away."""
+    from service import tracker
+
+    engine, seq = tracked_engine()
+    calls = []
+    real = tracker._relocate
+    monkeypatch.setattr(tracker, "_relocate", lambda st, *a, **k: calls.append(st.frames) or real(st, *a, **k))
+    far = seq.points_m[TRACKED] + [20.0, 0.0, 0.0]  # points nowhere near it: the subject is lost, not found
+    n = 60
+    for f in range(TRACKED, TRACKED + n):
+        engine.step(FrameInput("default", f, t_ns(f, seq.rate_hz), far))
+    searched = sorted(set(calls))
+    eager = tracker.RELOCATE_EAGER_FRAMES
+    assert len(searched) == eager + (n - eager) // tracker.RELOCATE_EVERY_FRAMES, searched
+    assert all(b - a == tracker.RELOCATE_EVERY_FRAMES for a, b in zip(searched[eager:], searched[eager + 1 :]))
+
 # ------------------------------------------------------------------ bad input
 TRACKED = 400  # frames tracked_engine runs: past the seed (240) and the calibration taking effect (+120)
 
