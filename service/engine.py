@@ -86,9 +86,13 @@ REFINE_EVERY_FRAMES = 240  # ... at most once per this many frames (then twice a
 #: not change length, so its solved poses were wrong (a subject lying prone moved joints by 25-40 cm,
 #: Clouthier KneeltoProne at L3).
 REFINE_MAX_JOINT_SHIFT_M = 0.1
-REFINE_APPLY_FRAMES = 120  # a refinement started at frame f takes effect at frame f + this (later behind a queue)
+REFINE_APPLY_S = 1.0  # a refinement started at frame f takes effect this much stream time later (later behind a queue)
 CALIBRATE_CATCH_UP_SOLVES = 2  # solves that bring a calibration's pose up to the frame it takes effect
-CALIBRATE_APPLY_FRAMES = 60  # a calibration (50-300 ms of work beside the frame loop) started at frame f takes effect at f + this (later behind a queue)
+#: A calibration (50-300 ms of work beside the frame loop) started at frame f takes effect this much stream
+#: time later (later behind a queue), counted in the subject's frames. In seconds, not frames: 60 frames,
+#: right at 120 Hz, left a 50 Hz serve without a skeleton for 1.2 s after the seed, and the serving arm's
+#: labels, tracked alone through the serve, came out permuted and stayed so (tennis, two players, at L2).
+CALIBRATE_APPLY_S = 0.5
 HELPER_JOB_S = 0.3  # the time one calibration or refinement takes in the helper process (`_queue_frames`)
 DISCOVER_FRAMES = 60  # frames an unexplained point must ride on an automatic subject to become a marker
 #: Subjects are given phases 0..PHASES-1 (`tracker.new_state`), so the tracker's periodic work (every 2nd,
@@ -354,7 +358,7 @@ class Engine:
     def _maybe_calibrate(self, s: _Subject, frame) -> None:
         """Fit a skeleton once an upright pose is in the labeled history; retry every second if not. The
         work (50-300 ms, more with many markers) runs in the helper process (`service.worker`), like
-        refinement, and takes effect CALIBRATE_APPLY_FRAMES frames after it started (waiting for it then
+        refinement, and takes effect CALIBRATE_APPLY_S of stream time after it started (waiting for it then
         if need be): the frame loop does not stall on it, and `label` and the daemon give the same labels."""
         if s.calibration_job is not None:
             future, apply_at = s.calibration_job
@@ -368,7 +372,7 @@ class Engine:
             s.model = dataclasses.replace(s.model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints,
                                           has_skeleton=True, layout_offsets_m=off, layout_rms_m=layout)
             s.state.t_root_m, s.state.R_parent_segment = t_root, R
-            # bring the calibration pose (of a frame CALIBRATE_APPLY_FRAMES back) up to now on the latest
+            # bring the calibration pose (of a frame CALIBRATE_APPLY_S back) up to now on the latest
             # labels: several solves, as one of max_steps iterations can stop short of a limb that moved
             last = s.history[-1]
             for _ in range(CALIBRATE_CATCH_UP_SOLVES):
@@ -379,7 +383,7 @@ class Engine:
         if s.model.has_skeleton or s.state.frames < s.next_calibration_frame or len(s.history) < 12:
             return
         s.next_calibration_frame = s.state.frames + 120
-        delay = max(CALIBRATE_APPLY_FRAMES, self._queue_frames(s))
+        delay = max(self._frames(s, CALIBRATE_APPLY_S), self._queue_frames(s))
         job = self._worker().submit(calibration.calibrate_from_history, np.stack(s.history))
         s.calibration_job = (job, s.state.frames + delay)
 
@@ -388,7 +392,7 @@ class Engine:
         calibration pose hid the joints: a joint shows where it is only when it bends).
 
         The work (0.1-0.5 s) runs in the helper process (`service.worker`), off the frame loop, and its
-        result is applied exactly REFINE_APPLY_FRAMES frames after it was started — waiting for it then if
+        result is applied exactly REFINE_APPLY_S of stream time (in frames) after it was started — waiting for it then if
         need be — so the daemon never stalls and `mocap-service label` gives the same labels as the daemon,
         frame for frame. Intervals double after each refinement (backoff) so a subject whose markers wobble
         on the skin does not keep the helper busy."""
@@ -409,7 +413,7 @@ class Engine:
         s.refine_interval = min(2 * s.refine_interval, 20 * REFINE_EVERY_FRAMES) if s.refine_interval else REFINE_EVERY_FRAMES
         s.next_refine_frame = st.frames + s.refine_interval
         hist = np.stack(s.history)
-        delay = max(REFINE_APPLY_FRAMES, self._queue_frames(s))
+        delay = max(self._frames(s, REFINE_APPLY_S), self._queue_frames(s))
         job = self._worker().submit(refined_model, self._solver_spec, s.model, hist, st.t_root_m.copy(), st.R_parent_segment.copy())
         s.refine_job = (job, st.frames + delay)
 
@@ -422,8 +426,13 @@ class Engine:
         still counts: the estimate errs late, never early), so `label` and the daemon still take each
         result at the same frame."""
         queued = sum((o.calibration_job is not None) + (o.refine_job is not None) for o in self._subjects.values())
+        return (queued + 1) * self._frames(s, HELPER_JOB_S)
+
+    @staticmethod
+    def _frames(s: _Subject, seconds: float) -> int:
+        """`seconds` of stream time in subject s's frames (at least 1), from its last frame interval."""
         dt = max(s.state.acc_dt_s, 1e-3) if s.state.acc_dt_s > 0 else 1.0 / 120  # one just found has no interval yet
-        return (queued + 1) * max(1, round(HELPER_JOB_S / dt))
+        return max(1, round(seconds / dt))
 
     def _worker(self):
         return worker.shared()

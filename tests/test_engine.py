@@ -206,10 +206,10 @@ def test_automatic_tpose_subject(marker_set):
 
 def test_an_automatic_subject_takes_its_skeleton_one_calibration_period_after_it_appears():
     """A subject found in a T-pose has no frame interval of its own yet; its calibration still takes
-    effect CALIBRATE_APPLY_FRAMES frames after it starts, on the frame after the subject appears (it once
+    effect CALIBRATE_APPLY_S (in frames at 120 Hz) after it starts, on the frame after the subject appears (it once
     waited 300 frames, taking 0.3 s of helper time at an assumed 1 ms per frame: HDM_mm at L3 in T-pose mode
     lost 4 points)."""
-    from service.engine import CALIBRATE_APPLY_FRAMES
+    from service.engine import CALIBRATE_APPLY_S
 
     seq = corrupt(perform(7, duration_s=4.0).recording, "L0", 7)
     engine = Engine(EngineConfig(tpose_auto=True))
@@ -220,8 +220,29 @@ def test_an_automatic_subject_takes_its_skeleton_one_calibration_period_after_it
             appeared = f
         if skeleton is None and appeared is not None and engine.describe("S1")["has_skeleton"]:
             skeleton = f
-    assert appeared is not None and skeleton == appeared + 1 + CALIBRATE_APPLY_FRAMES, (appeared, skeleton)
+    assert appeared is not None and skeleton == appeared + 1 + round(CALIBRATE_APPLY_S * 120), (appeared, skeleton)
 
+
+
+@pytest.mark.parametrize("rate_hz", [50.0, 120.0])
+def test_a_seeded_subject_takes_its_skeleton_the_same_time_after_the_seed_at_any_rate(rate_hz):
+    """The calibration started at the end of the seed takes effect CALIBRATE_APPLY_S of stream time later,
+    whatever the frame rate: counted as 60 frames, a 50 Hz serve went 1.2 s without a skeleton and its
+    serving arm came out of it with permuted labels, kept for 7 s (tennis, two players, at L2)."""
+    from service.engine import CALIBRATE_APPLY_S
+
+    seq = corrupt(perform(7, duration_s=4.0, rate_hz=rate_hz).recording, "L0", 7)
+    engine = Engine(EngineConfig(tpose_auto=False))
+    started = skeleton = None
+    for f, points in enumerate(seq.points_m):
+        engine.step(FrameInput("default", f, t_ns(f, rate_hz), points, seq.true_labels(f) if f < seq.seed_frames else None))
+        if started is None and engine._subjects["Performer"].calibration_job is not None:
+            started = f
+        if engine.describe("Performer")["has_skeleton"]:
+            skeleton = f
+            break
+    assert started is not None and started >= seq.seed_frames - 1, started
+    assert skeleton == started + round(CALIBRATE_APPLY_S * rate_hz), (started, skeleton)
 
 def test_a_marker_reconstructed_twice_is_one_marker_of_an_automatic_subject():
     """Three markers each come with a repeat 0-2 mm away in every frame (as HDM05's `*N` points repeat
@@ -264,10 +285,10 @@ def test_two_seeded_subjects_share_no_point():
 def test_calibrations_queued_together_take_effect_one_job_apart():
     """Three subjects seeded together at 120 Hz ask the helper process for three calibrations at the same
     frame. It runs them one at a time, HELPER_JOB_S each, so the k-th takes effect no earlier than k of
-    them from then (after CALIBRATE_APPLY_FRAMES at the earliest), instead of all at the same frame, where
+    them from then (after CALIBRATE_APPLY_S at the earliest), instead of all at the same frame, where
     the frame loop stalled waiting for the third (0.25 s in the benchmark's subject scan). The schedule is
     counted in frames, so it is the same run after run, and every subject is tracked on its skeleton."""
-    from service.engine import CALIBRATE_APPLY_FRAMES, HELPER_JOB_S
+    from service.engine import CALIBRATE_APPLY_S, HELPER_JOB_S
 
     rec, _ = multi_perform([8, 9, 10], spacing_m=2.5, duration_s=4.5)
     seq = corrupt(rec, "L0", 8)
@@ -280,10 +301,9 @@ def test_calibrations_queued_together_take_effect_one_job_apart():
             if name not in calibrated and engine.describe(name)["has_skeleton"]:
                 calibrated[name] = f
     assert len(calibrated) == 3, calibrated
-    job = round(HELPER_JOB_S * seq.rate_hz)
+    job, apply = round(HELPER_JOB_S * seq.rate_hz), round(CALIBRATE_APPLY_S * seq.rate_hz)
     first = min(calibrated.values())
-    assert sorted(calibrated.values()) == [first, first - CALIBRATE_APPLY_FRAMES + 2 * job,
-                                           first - CALIBRATE_APPLY_FRAMES + 3 * job], calibrated
+    assert sorted(calibrated.values()) == [first, first - apply + 2 * job, first - apply + 3 * job], calibrated
 
 
 
