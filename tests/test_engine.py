@@ -156,6 +156,30 @@ def test_a_foot_back_before_its_leg_is_found_by_its_layout_within_reach_of_the_h
     assert right > 0.9 * total, (right, total)
 
 
+
+def test_segments_are_searched_for_only_around_a_recent_fit(monkeypatch):
+    """The segment search hangs a lost segment from its joint where the last fit put it. With solves
+    skipped that fit can be 10 frames old, and a fast limb's joint with it (a serving arm's forearm
+    searched around a stale elbow took the other hand's points: tennis at L3). A search that finds the fit
+    older than SEARCH_FIT_AGE_FRAMES has a solve launched and waits one frame for it. Synthetic walk at L3 (cluster dropouts hide whole
+    segments), adaptive skipping on."""
+    from service import tracker
+
+    ages = []  # at each search: how many frames old the fit it searches around is
+    real = tracker._search_segments
+
+    def spy(model, st, points, *args):
+        ages.append((st.last_t_ns - st.skel_t_ns) * 1e-9 * rate_hz + 1)  # last_t_ns: the previous frame's
+        return real(model, st, points, *args)
+
+    monkeypatch.setattr(tracker, "_search_segments", spy)
+    rate_hz = 120.0
+    seq = corrupt(perform(4, duration_s=10.0, rate_hz=rate_hz).recording, "L3", 4)
+    s = score(seq, run(seq, Engine(EngineConfig(tpose_auto=False))), "seeded", seq.seed_frames)
+    assert len(ages) >= 10, len(ages)
+    assert max(ages) <= tracker.SEARCH_FIT_AGE_FRAMES, sorted(ages)[-5:]
+    assert s.accuracy >= 0.95, s.worst_markers()
+
 def test_dropped_frames_do_not_break_tracking():
     """5 % of frames never sent plus one 0.1 s hole after the seed: t_ns jumps, tracking goes on."""
     seq = corrupt(perform(6, duration_s=5.0).recording, "L0", 6)
