@@ -93,7 +93,11 @@ CALIBRATE_CATCH_UP_SOLVES = 2  # solves that bring a calibration's pose up to th
 #: right at 120 Hz, left a 50 Hz serve without a skeleton for 1.2 s after the seed, and the serving arm's
 #: labels, tracked alone through the serve, came out permuted and stayed so (tennis, two players, at L2).
 CALIBRATE_APPLY_S = 0.5
-HELPER_JOB_S = 0.3  # the time one calibration or refinement takes in the helper process (`_queue_frames`)
+#: The time one calibration or refinement takes in the helper process (`_queue_frames`). Measured: a
+#: 41-marker calibration from 240 frames takes 0.31-0.39 s here (cmu/135_02); at 0.3 the frame that took
+#: the second and third subjects' calibrations waited for them, 70-250 ms (subject scan p99 for 2 / 3 / 4
+#: subjects 88 / 205 / 248 ms, against 7.5 / 10 / 19 ms at 0.45).
+HELPER_JOB_S = 0.45
 DISCOVER_FRAMES = 60  # frames an unexplained point must ride on an automatic subject to become a marker
 #: Subjects are given phases 0..PHASES-1 (`tracker.new_state`), so the tracker's periodic work (every 2nd,
 #: 3rd, 4th frame) falls on different frames for different subjects: 12 covers every period it uses.
