@@ -188,10 +188,12 @@ class Engine:
             names = list(self._subjects)
             self._subjects.clear()
             self._candidates.clear()
+            self._phases.clear()
             return names
         if subject not in self._subjects:
             raise EngineError(f"no subject {subject!r}; subjects: {', '.join(self._subjects) or 'none'}")
         del self._subjects[subject]
+        self._phases.pop(subject, None)  # its phase is free for the next subject
         return [subject]
 
     def describe(self, subject: str) -> dict:

@@ -358,6 +358,8 @@ def test_subjects_seeded_together_do_their_periodic_work_on_different_frames(mon
     lone = Engine()
     lone.step(FrameInput("default", 0, 0, np.eye(3), ["Solo:A", "Solo:B", "Solo:C"]))
     assert lone._phases == {"Solo": 0}
+    engine.reset("Performer1")  # a removed subject's phase is free again, and the registry does not grow
+    assert sorted(engine._phases) == ["Performer2", "Performer3", "Performer4"]
 
 
 def test_a_subject_lost_long_is_looked_for_on_every_4th_frame(monkeypatch):
