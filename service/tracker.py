@@ -17,9 +17,13 @@
    model's distances. Markers neither can place, unlabeled a few frames though in view (a hand that moved
    while hidden, where the fit, with nothing to hold it, kept it), and the markers of a segment none of
    whose markers is labeled (a foot back from an occlusion: its partners across the joint place it no
-   better than the fit) are first looked for by registering their segment around its joint. A subject
-   with fewer than 4 labels (it left the volume, or was hidden whole) is looked for by registering its
-   last marker cloud onto the unclaimed points nearby (rigid ICP).
+   better than the fit) are first looked for by registering their segment around its joint, where a fit
+   at most SEARCH_FIT_AGE_FRAMES old puts it (an older one: a solve is launched and the search waits a
+   frame). A subject with fewer than 4 labels (it left the volume, or was hidden whole) is looked for by
+   registering its last marker cloud onto the unclaimed points nearby (rigid ICP): on every frame at
+   first, then on every RELOCATE_EVERY_FRAMES-th.
+   The periodic work (every 2nd, 3rd, 4th frame) runs on frames chosen by the subject's frame count,
+   which starts at its phase (`new_state`), so subjects do it on different frames.
    Every SHAPE_EVERY_FRAMES frames, labels permuted within a segment (a wrist triad after a fast pass,
    tracked permuted since, which the partner statistics absorb), or a re-acquired label on the point of
    another marker of its segment, are put back where the segment's calibrated marker layout says
