@@ -357,7 +357,7 @@ class Engine:
         """The subject's phase: kept for its life (a subject rebuilt with new markers keeps it); a new one
         takes the phase fewest current subjects have, the lowest first (a lone subject runs at phase 0)."""
         if name not in self._phases:
-            used = collections.Counter(self._phases[n] for n in self._subjects if n in self._phases)
+            used = collections.Counter(self._phases.values())  # the current subjects' (reset frees them)
             self._phases[name] = min(range(PHASES), key=lambda k: (used[k], k))
         return self._phases[name]
 
@@ -398,8 +398,8 @@ class Engine:
         calibration pose hid the joints: a joint shows where it is only when it bends).
 
         The work (0.1-0.5 s) runs in the helper process (`service.worker`), off the frame loop, and its
-        result is applied exactly REFINE_APPLY_S of stream time (in frames) after it was started — waiting for it then if
-        need be — so the daemon never stalls and `mocap-service label` gives the same labels as the daemon,
+        result is applied exactly REFINE_APPLY_S of stream time (in frames) after it was started — waiting
+        for it then if need be — so the daemon never stalls and `mocap-service label` gives the same labels as the daemon,
         frame for frame. Intervals double after each refinement (backoff) so a subject whose markers wobble
         on the skin does not keep the helper busy."""
         st = s.state

@@ -559,9 +559,10 @@ def _relocate(st: TrackState, points: np.ndarray, cand: np.ndarray, gate_m: floa
             if inl.sum() < 3:
                 break
             if radius == gate_m:  # the radius has stopped shrinking: the same pairs give the same motion again
-                if pairs is not None and np.array_equal(pairs, np.where(inl, j, -1)):
+                now = np.where(inl, j, -1)
+                if pairs is not None and np.array_equal(pairs, now):
                     break
-                pairs = np.where(inl, j, -1)
+                pairs = now
             R, t = rigid_motion(src[inl], near[j[inl]])
         X = src @ R.T + t
         n = int((tree.query(X)[0] < gate_m).sum())
@@ -1093,9 +1094,9 @@ def step(
         # probation keep ghosts out)
         widen = 1.0 + np.minimum(st.hidden_frames * dt / HIDDEN_WIDEN_S, MAX_HIDDEN_GATE_FACTOR - 1.0)
         gate_missing[use_skel] = config.reacquire_gate_m * widen[use_skel]
-    lost = labeled.sum() < 4
-    st.lost_frames = st.lost_frames + 1 if lost else 0
-    if lost:
+    subject_lost = labeled.sum() < 4
+    st.lost_frames = st.lost_frames + 1 if subject_lost else 0
+    if subject_lost:
         # Lost (full occlusion, a restart from saved state, a subject that left the volume): look for the
         # subject's last known marker cloud in the unclaimed points nearby, registered rigidly (it came
         # back walking, elsewhere, turned); failing that, for every marker where it was last, coasting.

@@ -156,13 +156,12 @@ def test_a_foot_back_before_its_leg_is_found_by_its_layout_within_reach_of_the_h
     assert right > 0.9 * total, (right, total)
 
 
-
 def test_segments_are_searched_for_only_around_a_recent_fit(monkeypatch):
     """The segment search hangs a lost segment from its joint where the last fit put it. With solves
     skipped that fit can be 10 frames old, and a fast limb's joint with it (a serving arm's forearm
     searched around a stale elbow took the other hand's points: tennis at L3). A search that finds the fit
-    older than SEARCH_FIT_AGE_FRAMES has a solve launched and waits one frame for it. Synthetic walk at L3 (cluster dropouts hide whole
-    segments), adaptive skipping on."""
+    older than SEARCH_FIT_AGE_FRAMES has a solve launched and waits one frame for it. Synthetic walk at
+    L3 (cluster dropouts hide whole segments), adaptive skipping on."""
     from service import tracker
 
     ages = []  # at each search: how many frames old the fit it searches around is
@@ -179,6 +178,7 @@ def test_segments_are_searched_for_only_around_a_recent_fit(monkeypatch):
     assert len(ages) >= 10, len(ages)
     assert max(ages) <= tracker.SEARCH_FIT_AGE_FRAMES, sorted(ages)[-5:]
     assert s.accuracy >= 0.95, s.worst_markers()
+
 
 def test_dropped_frames_do_not_break_tracking():
     """5 % of frames never sent plus one 0.1 s hole after the seed: t_ns jumps, tracking goes on."""
@@ -230,9 +230,9 @@ def test_automatic_tpose_subject(marker_set):
 
 def test_an_automatic_subject_takes_its_skeleton_one_calibration_period_after_it_appears():
     """A subject found in a T-pose has no frame interval of its own yet; its calibration still takes
-    effect CALIBRATE_APPLY_S (in frames at 120 Hz) after it starts, on the frame after the subject appears (it once
-    waited 300 frames, taking 0.3 s of helper time at an assumed 1 ms per frame: HDM_mm at L3 in T-pose mode
-    lost 4 points)."""
+    effect CALIBRATE_APPLY_S (in frames at 120 Hz) after it starts, on the frame after the subject appears
+    (it once waited 300 frames, taking 0.3 s of helper time at an assumed 1 ms per frame: HDM_mm at L3 in
+    T-pose mode lost 4 points)."""
     from service.engine import CALIBRATE_APPLY_S
 
     seq = corrupt(perform(7, duration_s=4.0).recording, "L0", 7)
@@ -245,7 +245,6 @@ def test_an_automatic_subject_takes_its_skeleton_one_calibration_period_after_it
         if skeleton is None and appeared is not None and engine.describe("S1")["has_skeleton"]:
             skeleton = f
     assert appeared is not None and skeleton == appeared + 1 + round(CALIBRATE_APPLY_S * 120), (appeared, skeleton)
-
 
 
 @pytest.mark.parametrize("rate_hz", [50.0, 120.0])
@@ -267,6 +266,7 @@ def test_a_seeded_subject_takes_its_skeleton_the_same_time_after_the_seed_at_any
             break
     assert started is not None and started >= seq.seed_frames - 1, started
     assert skeleton == started + round(CALIBRATE_APPLY_S * rate_hz), (started, skeleton)
+
 
 def test_a_marker_reconstructed_twice_is_one_marker_of_an_automatic_subject():
     """Three markers each come with a repeat 0-2 mm away in every frame (as HDM05's `*N` points repeat
@@ -330,7 +330,6 @@ def test_calibrations_queued_together_take_effect_one_job_apart():
     assert sorted(calibrated.values()) == [first, first - apply + 2 * job, first - apply + 3 * job], calibrated
 
 
-
 def test_subjects_seeded_together_do_their_periodic_work_on_different_frames(monkeypatch):
     """Four subjects seeded on the same frame would all run the layout check (the costliest periodic step,
     ~1 ms each) on every 4th frame and nothing on the others: 8 subjects made a 28 ms frame every 4th.
@@ -380,6 +379,7 @@ def test_a_subject_lost_long_is_looked_for_on_every_4th_frame(monkeypatch):
     eager = tracker.RELOCATE_EAGER_FRAMES
     assert len(searched) == eager + (n - eager) // tracker.RELOCATE_EVERY_FRAMES, searched
     assert all(b - a == tracker.RELOCATE_EVERY_FRAMES for a, b in zip(searched[eager:], searched[eager + 1 :]))
+
 
 # ------------------------------------------------------------------ bad input
 TRACKED = 400  # frames tracked_engine runs: past the seed (240) and the calibration taking effect (+120)
