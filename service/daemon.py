@@ -367,7 +367,7 @@ class Daemon:
         started_ns = time.perf_counter_ns()
         try:
             outputs, stats = self.engine.step(
-                frame_input(frame.stream, frame.frame, frame.t_ns, frame.points, frame.labels)
+                frame_input(frame.stream, frame.frame, frame.t_ns, frame.points, frame.labels), defer=True
             )
         except Exception as e:  # noqa: BLE001 - the daemon never dies of a frame; counted and logged once
             self._count_error("engine_error", e)

@@ -262,19 +262,21 @@ class Engine:
         return loaded
 
     # ---------------------------------------------------------------- the frame loop
-    def step(self, frame: FrameInput) -> tuple[list[SubjectOutput], FrameStats]:
-        """Label one frame. Non-finite points are dropped and counted; labels of the wrong length ignored."""
+    def step(self, frame: FrameInput, defer: bool = False) -> tuple[list[SubjectOutput], FrameStats]:
+        """Label one frame. Non-finite points are dropped and counted; labels of the wrong length ignored.
+        With `defer`, the subjects' state updates and solve launches are left to `complete` (or to the next
+        step), so the labels can be published sooner; the labels are the same either way."""
         stamp_ns = frame.t_ns
         clock = self._clocks.get(frame.stream)
         if clock is None or frame.frame <= clock.frame:  # a new stream, or one that restarted
             clock = self._clocks[frame.stream] = _StreamClock(frame.frame, frame.t_ns, frame.t_ns)
         frame = dataclasses.replace(frame, t_ns=clock.tick(frame.frame, frame.t_ns))
-        outputs, stats = self._step(frame)
+        outputs, stats = self._step(frame, defer)
         if frame.t_ns != stamp_ns:
             outputs = [dataclasses.replace(o, t_ns=stamp_ns) for o in outputs]
         return outputs, stats
 
-    def _step(self, frame: FrameInput) -> tuple[list[SubjectOutput], FrameStats]:
+    def _step(self, frame: FrameInput, defer: bool = False) -> tuple[list[SubjectOutput], FrameStats]:
         pts = np.asarray(frame.points_m, dtype=np.float64).reshape(-1, 3)
         finite = np.all(np.isfinite(pts), axis=1)
         n_invalid = int((~finite).sum())
@@ -308,13 +310,14 @@ class Engine:
             tracker.collect(s.model, s.state)  # the last frame's fit, before anything reads the pose
             self._maybe_calibrate(s, frame)
             self._maybe_refine(s)
-            s.state, res = tracker.step(s.model, s.state, points, free, frame.t_ns, self.config, self.solver)
+            s.state, res = tracker.step(s.model, s.state, points, free, frame.t_ns, self.config, self.solver, defer)
             free[res.point_index[res.point_index >= 0]] = False
             s.history.append(res.positions_m)
             outputs.append(self._output(s, frame, res, keep))
         if labels is None:
             for name in order:
                 if self._subjects[name].auto:
+                    tracker.finish(self._subjects[name].state)
                     self._discover(self._subjects[name], frame, points, free)
         if self.config.tpose_auto and labels is None:
             new_subjects += self._find_tposes(frame, points, free)
@@ -562,10 +565,12 @@ class Engine:
         """`outputs` of the last `step` with the pose of their own frame. `step` returns as soon as the
         labels are known, with the pose of the latest completed fit, while the fits launched on this frame's
         labels still compute (on XLA's thread); this waits for them, so labels can be published first and
-        poses right after. Labels are the same either way."""
+        poses right after. Labels are the same either way. A deferred step's bookkeeping is done here."""
         done = []
         for out in outputs:
             s = self._subjects.get(out.subject)
+            if s is not None:
+                tracker.finish(s.state)
             if s is None or not out.solved:
                 done.append(out)
                 continue

@@ -39,7 +39,7 @@ class FakeEngine:
     def warm_up(self) -> float:
         return 0.0
 
-    def step(self, frame):
+    def step(self, frame, defer=False):
         self.inputs.append(frame)
         if self.step_s:
             time.sleep(self.step_s)
@@ -340,10 +340,10 @@ def test_a_burst_is_thinned_to_evenly_spaced_frames_not_a_jump(tmp_path):
     gate = threading.Event()
 
     class Gated(FakeEngine):  # holds frame 0 until the burst is queued behind it
-        def step(self, frame):
+        def step(self, frame, defer=False):
             if frame.frame == 0:
                 gate.wait(TIMEOUT_S)
-            return super().step(frame)
+            return super().step(frame, defer)
 
     engine = Gated(step_s=0.02)
     with running(Daemon(free_config(tmp_path), engine)) as d:

@@ -306,6 +306,33 @@ def test_two_seeded_subjects_share_no_point():
     assert s.accuracy >= 0.97 and s.precision >= 0.99, s.worst_markers()
 
 
+def test_deferred_bookkeeping_gives_the_same_labels_and_poses():
+    """The daemon steps with defer=True, publishes the labels, then calls complete: the state update and the
+    solve launch run there. Labels, predictions and poses are those of a plain step, frame by frame, and the
+    deferred work is done by complete (or, if a caller never completes, by the next step)."""
+    seq = corrupt(multi_perform((3, 4), duration_s=4.0)[0], "L2", 3)
+    plain, deferred = Engine(EngineConfig(tpose_auto=False)), Engine(EngineConfig(tpose_auto=False))
+    n_deferred = 0
+    for f, points in enumerate(seq.points_m):
+        if points is None:
+            continue
+        labels = seq.true_labels(f) if f < seq.seed_frames else None
+        frame = FrameInput("default", f, t_ns(f, seq.rate_hz), points, labels)
+        want = plain.complete(plain.step(frame)[0])
+        got, _ = deferred.step(frame, defer=True)
+        n_deferred += sum(deferred._subjects[o.subject].state.unfinished is not None for o in got)
+        if f % 7:  # on every 7th frame the next step finishes what was deferred
+            got = deferred.complete(got)
+            assert all(deferred._subjects[o.subject].state.unfinished is None for o in got)
+        for a, b in zip(want, got):
+            np.testing.assert_array_equal(a.point_index, b.point_index)
+            np.testing.assert_array_equal(a.predicted_m, b.predicted_m)
+            assert a.solved == b.solved
+            if f % 7:
+                np.testing.assert_array_equal(a.rotations_xyzw, b.rotations_xyzw)
+    assert n_deferred > 0.9 * (len(seq.points_m) - seq.seed_frames) * 2
+
+
 def test_calibrations_queued_together_take_effect_one_job_apart():
     """Three subjects seeded together at 120 Hz ask the helper process for three calibrations at the same
     frame. It runs them one at a time, HELPER_JOB_S each, so the k-th takes effect no earlier than k of
