@@ -118,6 +118,7 @@ SHAPE_CLEAR_MIN_LABELS = 3
 SHAPE_CLEAR_LAYOUT_M = 0.0025
 SHAPE_CLEAR_SHARE = 0.6
 SHAPE_CLEAR_FIT_M = 0.002
+COMPLETE_JOINT_RMS_M = 0.02  # ... (`_complete_by_free_point`) whose markers and joint fit the offsets this well [m] RMS
 SHAPE_CONFIRM = 2  # ... when the same relabelling wins this many checks running
 SHAPE_FIT_ALPHA = SHAPE_EVERY_FRAMES / 200  # the share of checks (over ~200 frames) on which a segment's labels fit its layout, a running mean ...
 SHAPE_TRUSTED_SHARE = 0.3  # ... at least this, over more than SHAPE_MIN_CHECKS checks, for its layout to be trusted
@@ -218,6 +219,8 @@ class TrackState:
     shape_symmetry: dict = dataclasses.field(default_factory=dict)
     shape_fit: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(N_SEGMENTS))
     shape_checks: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(N_SEGMENTS))
+    # `_complete_by_free_point`: per segment, the relabelling asked for on the last checks, and how many running
+    complete_votes: dict = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -359,7 +362,7 @@ def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, whic
     U, _, Vt = np.linalg.svd(H)
     V, Ut = Vt.transpose(0, 2, 1), U.transpose(0, 2, 1)
     R = V @ Ut
-    flip = np.linalg.det(R) < 0  # a reflection: flip the least significant axis
+    flip = _det3(R) < 0  # a reflection: flip the least significant axis
     if flip.any():
         V[flip, :, 2] *= -1
         R[flip] = V[flip] @ Ut[flip]
@@ -762,32 +765,127 @@ def _kabsch_rms(A: np.ndarray, B: np.ndarray, w: np.ndarray) -> np.ndarray:
     """RMS misfit (C,) of the best rigid motion taking A onto B, both (C, N, 3), over the points where
     w (C, N) is True. The optimal trace is s1 + s2 + sign(det H) s3 over the singular values of the
     cross-covariance H (Kabsch), so no rotation is formed, and they are the square roots of H^T H's
-    eigenvalues, in closed form. Hand-written because numpy's batched SVD of 3 x 3 matrices costs ~4 us
-    each: for 120 relabellings this takes ~300 us against ~800 us with it."""
-    wf = w[..., None].astype(float)
-    n = wf.sum(1)  # (C, 1)
-    a = (A - (A * wf).sum(1, keepdims=True) / n[:, None]) * wf
-    b = (B - (B * wf).sum(1, keepdims=True) / n[:, None]) * wf
+    eigenvalues, in closed form (the trigonometric solution of the characteristic cubic). Hand-written
+    because numpy's batched SVD of 3 x 3 matrices costs ~4 us each, and written out entry by entry because
+    numpy's batched det and small matmuls cost more than the arithmetic: 720 relabellings of a 5-marker
+    segment take ~0.5 ms, against ~1 ms with np.linalg.det and ~3 ms with the SVD."""
+    wf = w.astype(float)
+    n = wf.sum(1)
+    wn = wf / n[:, None]
+    # (einsum reduces over the middle axis ~5x faster than .sum(1) here)
+    a = (A - np.einsum("cn,cni->ci", wn, A)[:, None]) * wf[..., None]
+    b = (B - np.einsum("cn,cni->ci", wn, B)[:, None]) * wf[..., None]
     H = a.transpose(0, 2, 1) @ b
-    s = np.sqrt(np.maximum(_sym3_eigenvalues(H.transpose(0, 2, 1) @ H), 0.0))
-    d = np.sign(np.linalg.det(H))
-    sq = (a * a).sum((1, 2)) + (b * b).sum((1, 2)) - 2.0 * (s[:, 0] + s[:, 1] + d * s[:, 2])
-    return np.sqrt(np.maximum(sq, 0.0) / n[:, 0])
-
-
-def _sym3_eigenvalues(M: np.ndarray) -> np.ndarray:
-    """Eigenvalues (C, 3), largest first, of symmetric 3 x 3 matrices (C, 3, 3) (the trigonometric
-    solution of the characteristic cubic)."""
-    q = np.trace(M, axis1=1, axis2=2) / 3.0
-    p1 = M[:, 0, 1] ** 2 + M[:, 0, 2] ** 2 + M[:, 1, 2] ** 2
-    diag = np.diagonal(M, axis1=1, axis2=2) - q[:, None]
-    p = np.sqrt(((diag**2).sum(1) + 2.0 * p1) / 6.0)
+    h0, h1, h2 = H[:, :, 0], H[:, :, 1], H[:, :, 2]  # M = H^T H, its six distinct entries
+    m00, m11, m22 = (h0 * h0).sum(1), (h1 * h1).sum(1), (h2 * h2).sum(1)
+    m01, m02, m12 = (h0 * h1).sum(1), (h0 * h2).sum(1), (h1 * h2).sum(1)
+    q = (m00 + m11 + m22) / 3.0
+    d0, d1, d2 = m00 - q, m11 - q, m22 - q
+    p = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * (m01 * m01 + m02 * m02 + m12 * m12)) / 6.0)
+    det_shifted = d0 * (d1 * d2 - m12 * m12) - m01 * (m01 * d2 - m12 * m02) + m02 * (m01 * m12 - d1 * m02)  # det(M - qI)
     safe = np.where(p > 0, p, 1.0)
-    Bm = (M - q[:, None, None] * np.eye(3)) / safe[:, None, None]
-    phi = np.arccos(np.clip(np.linalg.det(Bm) / 2.0, -1.0, 1.0)) / 3.0
-    e1 = q + 2.0 * p * np.cos(phi)
+    phi = np.arccos(np.clip(det_shifted / (2.0 * safe**3), -1.0, 1.0)) / 3.0
+    e1 = q + 2.0 * p * np.cos(phi)  # M's eigenvalues, largest first
     e3 = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-    return np.stack([e1, 3.0 * q - e1 - e3, e3], axis=1)
+    s = np.sqrt(np.maximum(np.stack([e1, 3.0 * q - e1 - e3, e3]), 0.0))
+    trace = s[0] + s[1] + np.sign(_det3(H)) * s[2]
+    sq = np.einsum("cni,cni->c", a, a) + np.einsum("cni,cni->c", b, b) - 2.0 * trace
+    return np.sqrt(np.maximum(sq, 0.0) / n)
+
+
+def _det3(M: np.ndarray) -> np.ndarray:
+    """Determinants (C,) of 3 x 3 matrices (C, 3, 3), written out: ~8x faster than np.linalg.det for
+    hundreds of them, and no slower for a few."""
+    r0, r1, r2 = M[:, 0], M[:, 1], M[:, 2]
+    return (r0[:, 0] * (r1[:, 1] * r2[:, 2] - r1[:, 2] * r2[:, 1]) - r0[:, 1] * (r1[:, 0] * r2[:, 2] - r1[:, 2] * r2[:, 0])
+            + r0[:, 2] * (r1[:, 0] * r2[:, 1] - r1[:, 1] * r2[:, 0]))
+
+
+def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndarray, cand: np.ndarray,
+                            point_index: np.ndarray, cur: np.ndarray) -> np.ndarray:
+    """Put back two labels of a segment permuted while its other markers hide, using a free point and the
+    segment's joint. In place; returns the markers whose point changed.
+
+    Two labels alone match one distance, which a swap keeps: a foot's toe and fifth metatarsal labels
+    swapped as the foot came back (the heel hidden) stayed swapped for 13 s, and the heel's point, in
+    view, stayed unlabeled, its prediction carried by the swapped pair (HDM05 at L3). For each segment
+    with two labeled markers and unlabeled ones, the two points, each free point within the segment's
+    reach and the joint where the latest fit puts it are registered onto the segment's markers under
+    every way of labeling the points from them. A labeling counts if its three points fit the calibrated
+    layout as tightly as in calibration; the one whose joint then fits best is taken if it permutes the
+    two labels, fits within COMPLETE_JOINT_RMS_M, and another labeling of the two points fits the layout
+    too but puts the joint clearly farther off: the ambiguity the joint resolves (heel, toe and fifth
+    metatarsal make a near-isosceles triangle; its mirror image fits it as well). Where no other labeling
+    fits the layout, the free point is as likely a stray one completing a wrong triangle (a torso's
+    markers at L2): left alone. As in `_relabel_by_shape`, the same relabelling must win SHAPE_CONFIRM
+    checks running on a trusted layout, and the long-run partner distances must not object; the free
+    point's label is on probation."""
+    m = len(point_index)
+    if model.layout_rms_m is None or len(model.layout_rms_m) != m or model.layout_offsets_m is None:
+        return np.zeros(m, bool)
+    labeled = point_index >= 0
+    seg, layout = model.marker_segment, model.layout_offsets_m
+    slots = st.ever_seen & (seg >= 0) & (model.layout_rms_m < SHAPE_LAYOUT_TOL_M)
+    n_lab = np.bincount(seg[labeled & slots], minlength=N_SEGMENTS)
+    n_spare = np.bincount(seg[~labeled & slots], minlength=N_SEGMENTS)
+    trusted = (st.shape_fit >= SHAPE_TRUSTED_SHARE) & (st.shape_checks > SHAPE_MIN_CHECKS)
+    pool = np.flatnonzero(cand)
+    before = point_index.copy()
+    small = n_lab + n_spare <= SHAPE_ALL_MAPS + 1  # every labeling of three of its markers is tried
+    _, pw = world_transforms(st.t_root_m, st.R_parent_segment, model.joint_offsets_m)
+    for k in np.flatnonzero((n_lab == 2) & (n_spare > 0) & small & trusted):
+        lab = np.flatnonzero(labeled & slots & (seg == k))
+        slot = np.concatenate([lab, np.flatnonzero(~labeled & slots & (seg == k))])
+        reach = _norm(layout[slot] - layout[slot].mean(0)).max() * 2.0 + SEARCH_INLIER_M
+        near = pool[_norm(points[pool] - cur[lab].mean(0)) < reach]
+        if len(near) == 0:
+            st.complete_votes.pop(int(k), None)
+            continue
+        maps = _relabellings(3, len(slot))  # (C, 3): slots labeling the two points, then the free one
+        C, P = len(maps), len(near)
+        B = np.empty((P, 4, 3))
+        B[:, 0], B[:, 1:3], B[:, 3] = pw[k], cur[lab], points[near]
+        B = np.broadcast_to(B[None], (C, P, 4, 3)).reshape(-1, 4, 3)
+        A = np.zeros((C, 4, 3))
+        A[:, 1:] = layout[slot[maps]]
+        A = np.broadcast_to(A[:, None], (C, P, 4, 3)).reshape(-1, 4, 3)
+        rms3 = _kabsch_rms(A[:, 1:], B[:, 1:], np.ones((C * P, 3), bool)).reshape(C, P)
+        A = A.copy()
+        A[:, 1:] = np.broadcast_to(model.marker_offsets_m[slot[maps]][:, None], (C, P, 3, 3)).reshape(-1, 3, 3)
+        rms4 = _kabsch_rms(A, B, np.ones((C * P, 4), bool)).reshape(C, P)
+        tight = max(SHAPE_CLEAR_FIT_M, 2.0 * float(np.sqrt(np.mean(model.layout_rms_m[slot] ** 2))))
+        score = np.where(rms3 <= tight, rms4, np.inf)
+        c, p = np.unravel_index(int(np.argmin(score)), score.shape)
+        other = (maps[:, 0] != maps[c, 0]) | (maps[:, 1] != maps[c, 1])  # another labeling of the two points
+        rival = score[other].min() if other.any() else np.inf
+        if not (np.isfinite(rival) and (maps[c, 0], maps[c, 1]) != (0, 1) and rival >= 2.0 * score[c, p] + SHAPE_CLEAR_MIN_M
+                and score[c, p] <= COMPLETE_JOINT_RMS_M):
+            st.complete_votes.pop(int(k), None)
+            continue
+        new = (int(slot[maps[c, 0]]), int(slot[maps[c, 1]]), int(slot[maps[c, 2]]), int(near[p]))
+        votes = st.complete_votes.get(int(k), ((), 0))  # (the points are renumbered every frame: markers only)
+        votes = (new[:3], votes[1] + 1 if votes[0] == new[:3] else 1)
+        st.complete_votes[int(k)] = votes
+        if votes[1] < SHAPE_CONFIRM:
+            continue
+        del st.complete_votes[int(k)]
+        proposed = point_index.copy()
+        proposed[lab] = -1
+        proposed[[new[0], new[1]]] = point_index[lab]
+        proposed[new[2]] = new[3]
+        # the long-run partner distances must not object (as in `_relabel_by_shape`)
+        moved = np.flatnonzero(proposed != point_index)
+        z_now = distance_misfit(st, cur, labeled, moved)[moved]
+        z_new = distance_misfit(st, _gather(points, proposed), proposed >= 0, moved)[moved]
+        z_now, z_new = z_now[np.isfinite(z_now)], z_new[np.isfinite(z_new)]
+        if len(z_new) and np.median(z_new) > max(Z_SUSPECT, 2.0 * (np.median(z_now) if len(z_now) else 0.0)):
+            continue
+        point_index[:] = proposed
+        st.provisional[new[2]] = PROBATION_FRAMES
+        pool = pool[pool != new[3]]
+        cur[:] = _gather(points, point_index)
+        labeled = point_index >= 0
+    return point_index != before
 
 
 @functools.lru_cache(maxsize=None)
@@ -1180,6 +1278,8 @@ def step(
     relabeled = np.zeros(m, bool)
     if model.has_skeleton and st.frames % SHAPE_EVERY_FRAMES == 0:
         relabeled = _relabel_by_shape(model, st, points, point_index, cur)
+        relabeled |= _complete_by_free_point(model, st, points, ~taken, point_index, cur)
+        taken[point_index[point_index >= 0]] = True
         labeled = point_index >= 0
         if relabeled.any():
             # the last fit followed the permuted labels (it turned the forearm half a turn to match): its

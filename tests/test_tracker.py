@@ -327,6 +327,62 @@ def test_labels_permuted_within_a_segment_are_put_back_by_its_layout(segment, fi
     assert set(np.flatnonzero(changed)) == set(fore[:3])
 
 
+def test_two_labels_swapped_on_a_mirror_symmetric_foot_are_put_back_by_its_joint_and_a_free_point():
+    """A foot whose toe and fifth metatarsal markers are mirror images about the plane of its heel marker
+    and ankle: with the heel hidden, the toe and metatarsal labels swapped fit every layout distance. The
+    heel's point, in view and free, and the ankle where the fit puts it tell them apart (their mirror image
+    is no rotation of them): after SHAPE_CONFIRM checks the two labels are swapped back and the heel
+    labeled. Correct labels are left alone, and so are swapped ones with no free point to tell."""
+    from protocol.skeleton import SEGMENTS
+    from service.calibration import world_transforms
+
+    perf = perform(3, duration_s=0.1)
+    m, k = len(perf.marker_names), SEGMENTS.index("r_foot")
+    heel, toe, mt5 = (perf.marker_names.index(n) for n in ("RHEE", "RTOE", "RMT5"))
+    off = perf.marker_offsets_m.copy()
+    off[heel], off[toe], off[mt5] = [-0.07, 0.0, -0.04], [0.12, 0.035, -0.045], [0.12, -0.035, -0.045]
+    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, off, perf.joint_offsets_m, True,
+                                 layout_offsets_m=off, layout_rms_m=np.full(m, 0.001))
+    R = Rotation.from_quat(perf.rotations_xyzw[0]).as_matrix()
+    Rs, ps = world_transforms(perf.root_position_m[0], R, perf.joint_offsets_m)
+    points = perf.recording.points_m[0].copy()
+    foot = [heel, toe, mt5]
+    points[foot] = off[foot] @ Rs[k].T + ps[k]
+    points = np.vstack([points, ps[k] + [0.0, 0.0, 1.5]])  # a stray free point, far from the foot
+    st = tracker.new_state(model, points[:m], t_ns(0))
+    st.t_root_m, st.R_parent_segment = perf.root_position_m[0], R
+    st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
+    right = np.arange(m)
+    right[heel] = -1  # the heel hidden from the labels; its point is free
+    swapped = right.copy()
+    swapped[toe], swapped[mt5] = mt5, toe
+
+    def check(point_index, free=True):
+        cand = np.ones(len(points), bool)
+        cand[point_index[point_index >= 0]] = False
+        cand[heel] = free
+        cur = tracker._gather(points, point_index)
+        changed = tracker._complete_by_free_point(model, st, points, cand, point_index, cur)
+        np.testing.assert_array_equal(cur, tracker._gather(points, point_index))
+        return changed
+
+    idx = right.copy()
+    for _ in range(tracker.SHAPE_CONFIRM + 1):
+        assert not check(idx).any()
+    assert (idx == right).all()
+    idx = swapped.copy()
+    for _ in range(tracker.SHAPE_CONFIRM + 1):
+        assert not check(idx, free=False).any()
+    assert (idx == swapped).all()
+    for _ in range(tracker.SHAPE_CONFIRM - 1):
+        assert not check(idx).any()
+    changed = check(idx)
+    want = np.arange(m)
+    assert (idx == want).all()
+    assert set(np.flatnonzero(changed)) == set(foot)
+    assert st.provisional[heel] == tracker.PROBATION_FRAMES
+
+
 def test_a_re_acquired_label_on_a_hidden_neighbours_point_is_handed_to_it():
     """A forearm marker re-acquired on the point of another forearm marker, which is unlabeled (both were
     hidden; it came back first): the layout says the point is the other's, so it is handed over once
