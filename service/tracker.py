@@ -308,7 +308,7 @@ def _update_partners(st: TrackState) -> None:
     score = np.sqrt(st.dist_var_m2) + 0.02 * st.dist_mean_m
     score = np.where(st.dist_n >= PARTNER_MIN_SAMPLES, score, _BIG)
     np.fill_diagonal(score, _BIG)
-    k = min(N_PARTNERS, m - 1)
+    k = max(min(N_PARTNERS, m - 1), 0)  # (a subject of one marker has no partner)
     order = np.argsort(score, axis=1)[:, :k]
     ok = np.take_along_axis(score, order, axis=1) < _BIG
     partners = np.full((m, N_PARTNERS), -1)

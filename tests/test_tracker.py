@@ -501,6 +501,20 @@ def run_tracker(points_m: np.ndarray, seed_frames: int, shuffle_seed: int = 0, g
     return got
 
 
+@pytest.mark.parametrize("m", [0, 1, 2])
+def test_a_subject_of_fewer_markers_than_a_partner_set_steps_without_error(m):
+    """Degenerate subjects (no marker, one, two: fewer than three partners) step through random clouds,
+    their partner lists rebuilt on the way, and label nothing they cannot tell."""
+    model = tracker.SubjectModel("P", tuple(f"M{i}" for i in range(m)), np.zeros(m, int), np.zeros((m, 3)),
+                                 np.zeros((14, 3)))
+    st = tracker.new_state(model, np.zeros((m, 3)), t_ns(0))
+    rng = np.random.default_rng(m)
+    for f in range(1, 70):  # past the partner update (every 30 frames)
+        st, res = tracker.step(model, st, rng.normal(size=(5, 3)), np.ones(5, bool), t_ns(f), CONFIG)
+        assert res.point_index.shape == (m,)
+    assert st.partners.shape == (m, tracker.N_PARTNERS)
+
+
 def test_labels_survive_shuffling():
     P = perform(1, duration_s=4.0).recording.points_m
     got = run_tracker(P, 240)
