@@ -264,8 +264,8 @@ class Engine:
     # ---------------------------------------------------------------- the frame loop
     def step(self, frame: FrameInput, defer: bool = False) -> tuple[list[SubjectOutput], FrameStats]:
         """Label one frame. Non-finite points are dropped and counted; labels of the wrong length ignored.
-        With `defer`, the subjects' state updates and solve launches are left to `complete` (or to the next
-        step), so the labels can be published sooner; the labels are the same either way."""
+        With `defer`, the subjects' layout checks, state updates and solve launches are left to `complete`
+        (or to the next step), so the labels can be published sooner; the labels are the same either way."""
         stamp_ns = frame.t_ns
         clock = self._clocks.get(frame.stream)
         if clock is None or frame.frame <= clock.frame:  # a new stream, or one that restarted
@@ -310,10 +310,13 @@ class Engine:
             tracker.collect(s.model, s.state)  # the last frame's fit, before anything reads the pose
             self._maybe_calibrate(s, frame)
             self._maybe_refine(s)
-            s.state, res = tracker.step(s.model, s.state, points, free, frame.t_ns, self.config, self.solver, defer)
+            s.state, res = tracker.step(s.model, s.state, points, free, frame.t_ns, self.config, self.solver, defer=True)
             free[res.point_index[res.point_index >= 0]] = False
             s.history.append(res.positions_m)
             outputs.append(self._output(s, frame, res, keep))
+        if not defer:  # after every subject has labeled the frame, deferred or not: the same labels either way
+            for name in order:
+                tracker.finish(self._subjects[name].state)
         if labels is None:
             for name in order:
                 if self._subjects[name].auto:

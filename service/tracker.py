@@ -1103,8 +1103,8 @@ def step(
 ) -> tuple[TrackState, StepResult]:
     """Label one frame for one subject. `points` (N, 3) finite; `free` (N,) marks points no other subject
     claimed. Mutates and returns `st` (the registry owns it; callers never share a state). With `defer`,
-    the labels are returned before the state takes them in and the solve is launched: `finish` does that
-    (the daemon publishes the labels first; ~0.3 ms of a frame's ~1.8 ms is this bookkeeping)."""
+    the labels are returned before the layout check (8.), the state update and the solve launch: `finish`
+    does those (the daemon publishes the labels first; they are ~0.6 ms of a frame's ~1.8 ms)."""
     collect(model, st)
     m = model.n_markers
     dt = min(max((t_ns - st.last_t_ns) * 1e-9, 1e-4), 0.5) if st.frames or st.last_t_ns else 1.0 / 120
@@ -1273,24 +1273,11 @@ def step(
     if len(rows):
         labeled, cur = accept(rows, cols, segment_rule=model.has_skeleton)
 
-    # Labels permuted within a segment (a wrist triad after a fast pass or a re-acquisition) are put back
-    # in the order the segment's marker layout says.
-    relabeled = np.zeros(m, bool)
-    if model.has_skeleton and st.frames % SHAPE_EVERY_FRAMES == 0:
-        relabeled = _relabel_by_shape(model, st, points, point_index, cur)
-        relabeled |= _complete_by_free_point(model, st, points, ~taken, point_index, cur)
-        taken[point_index[point_index >= 0]] = True
-        labeled = point_index >= 0
-        if relabeled.any():
-            # the last fit followed the permuted labels (it turned the forearm half a turn to match): its
-            # word on these markers is void until a fit on the new labels (launched below) comes back
-            st.skel_pred_m = None
-
     # 5. Reject labels the model disagrees with.
     if skel_pred is not None and residual < 0.5 * config.reject_residual_m:
         # the model's word counts only where no rigid partners can speak for a marker
         err = _norm(np.where(labeled[:, None], cur - skel_pred, 0.0))
-        bad = labeled & check & ~has_rigid & (err > config.reject_residual_m) & ~relabeled & ~searched
+        bad = labeled & check & ~has_rigid & (err > config.reject_residual_m) & ~searched
         if bad.any():
             point_index[bad] = -1
             labeled = point_index >= 0
@@ -1300,7 +1287,6 @@ def step(
     fallback = np.where(has_rigid[:, None], rpred, coast)
     if skel_pred is not None:
         fallback = np.where((~has_rigid)[:, None], skel_pred, fallback)
-    st.labeled &= ~relabeled  # a relabelled marker's velocity is its old one, not the jump between tracks
     predicted = np.where(labeled[:, None], cur, fallback)  # what _commit makes the state's positions
     if skel_pred is not None:
         predicted = np.where(labeled[:, None], skel_pred, predicted)
@@ -1311,7 +1297,7 @@ def step(
     if model.has_skeleton and solver is not None:
         missing = ~labeled & st.ever_seen
         loose = (spread0 > LOOSE_SPREAD_M) & (st.fit_rms_m < SKELETON_TRUSTED_RMS_M)
-        if (missing & (~has_rigid | loose)).any() or relabeled.any() or st.search_waits or st.skipped >= min(config.max_skip_frames, config.max_skip_s / dt - 1e-6):
+        if (missing & (~has_rigid | loose)).any() or st.search_waits or st.skipped >= min(config.max_skip_frames, config.max_skip_s / dt - 1e-6):
             launch = True
             st.skipped = 0
         else:
@@ -1319,9 +1305,27 @@ def step(
     solved = launch and _launchable(labeled)
 
     def bookkeeping():
-        _commit(st, cur, labeled, fallback, t_ns, dt)
-        if launch:
-            _launch(model, st, solver, cur, labeled, t_ns)
+        # 8. Labels permuted within a segment (a wrist triad after a fast pass or a re-acquisition) are put
+        #    back in the order the segment's marker layout says. Not before publishing: a relabelling waits
+        #    for SHAPE_CONFIRM checks anyway (four frames apart), so one frame more costs little, and these
+        #    checks are the costliest step of a frame (~1.3 ms on every SHAPE_EVERY_FRAMES-th). The state
+        #    takes the new labels; this frame's published ones stay as they were. Points claimed meanwhile
+        #    by subjects stepped after this one (`free` is the engine's, updated in place) are not free.
+        idx, now = point_index.copy(), cur.copy()
+        relabeled = np.zeros(m, bool)
+        if model.has_skeleton and st.frames % SHAPE_EVERY_FRAMES == 0:
+            relabeled = _relabel_by_shape(model, st, points, idx, now)
+            relabeled |= _complete_by_free_point(model, st, points, ~taken & free, idx, now)
+            if relabeled.any():
+                # the last fit followed the permuted labels (it turned the forearm half a turn to match):
+                # its word on these markers is void until a fit on the new labels (launched here) comes back
+                st.skel_pred_m = None
+        st.labeled &= ~relabeled  # a relabelled marker's velocity is its old one, not the jump between tracks
+        final = idx >= 0
+        _commit(st, now, final, fallback, t_ns, dt)
+        if launch or (relabeled.any() and model.has_skeleton and solver is not None):
+            _launch(model, st, solver, now, final, t_ns)
+            st.skipped = 0
 
     st.unfinished = bookkeeping
     if not defer:
