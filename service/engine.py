@@ -568,12 +568,15 @@ class Engine:
         """`outputs` of the last `step` with the pose of their own frame. `step` returns as soon as the
         labels are known, with the pose of the latest completed fit, while the fits launched on this frame's
         labels still compute (on XLA's thread); this waits for them, so labels can be published first and
-        poses right after. Labels are the same either way. A deferred step's bookkeeping is done here."""
-        done = []
+        poses right after. Labels are the same either way. A deferred step's bookkeeping is done here, for
+        every subject before waiting for any fit: their fits then compute beside the others' bookkeeping."""
         for out in outputs:
             s = self._subjects.get(out.subject)
             if s is not None:
                 tracker.finish(s.state)
+        done = []
+        for out in outputs:
+            s = self._subjects.get(out.subject)
             if s is None or not out.solved:
                 done.append(out)
                 continue

@@ -24,16 +24,21 @@
    first, then on every RELOCATE_EVERY_FRAMES-th.
    The periodic work (every 2nd, 3rd, 4th frame) runs on frames chosen by the subject's frame count,
    which starts at its phase (`new_state`), so subjects do it on different frames.
-   Every SHAPE_EVERY_FRAMES frames, labels permuted within a segment (a wrist triad after a fast pass,
+   Here the frame's labels are final. What follows (`step(defer=True)` leaves it to `finish`, after the
+   daemon has published them) changes the state, not this frame's labels:
+4. Every SHAPE_EVERY_FRAMES frames, labels permuted within a segment (a wrist triad after a fast pass,
    tracked permuted since, which the partner statistics absorb), or a re-acquired label on the point of
    another marker of its segment, are put back where the segment's calibrated marker layout says
-   (`_relabel_by_shape`).
-4. The skeleton fit (optimistix Gauss-Newton, `service.solver`) is launched on the frame's final labels when
-   a hidden marker is left that rigid partners cannot place, and at least every `max_skip_frames` frames
-   (and `max_skip_s` seconds); otherwise it is skipped. It computes asynchronously (XLA's thread) while
-   the labels are published and is collected at the next frame (`collect`), whose skeleton predictions
-   are its markers carried forward at their velocity. The labels never wait for a solve; the pose waits
-   only for its own. Markers hidden long are re-acquired inside a gate that widens with the time hidden.
+   (`_relabel_by_shape`); two labels of a segment whose other markers hide, swapped, are put back by a free
+   point and the segment's joint (`_complete_by_free_point`). The state tracks the new labels from the
+   next frame on.
+5. The skeleton fit (optimistix Gauss-Newton, `service.solver`) is launched on the frame's final labels when
+   a hidden marker is left that rigid partners cannot place, after a relabelling, and at least every
+   `max_skip_frames` frames (and `max_skip_s` seconds); otherwise it is skipped. It computes
+   asynchronously (XLA's thread) and is collected by the engine for the frame's pose, or at the next frame
+   (`collect`), whose skeleton predictions are its markers carried forward at their velocity. The labels
+   never wait for a solve; the pose waits only for its own. Markers hidden long are re-acquired inside a
+   gate that widens with the time hidden.
 
 Rigid partners are learned online: running statistics of every pairwise marker distance (only over
 labeled frames) rank, for each marker, the partners whose distance varies least. They are kept with two
@@ -1283,7 +1288,7 @@ def step(
             labeled = point_index >= 0
             cur[bad] = np.nan
 
-    # 6. Update the state.
+    # 6. Where the state will put hidden markers (the bookkeeping below), and this frame's predictions.
     fallback = np.where(has_rigid[:, None], rpred, coast)
     if skel_pred is not None:
         fallback = np.where((~has_rigid)[:, None], skel_pred, fallback)
@@ -1291,8 +1296,8 @@ def step(
     if skel_pred is not None:
         predicted = np.where(labeled[:, None], skel_pred, predicted)
 
-    # 7. Launch the skeleton fit on the final labels when a hidden marker is left that its rigid partners
-    #    cannot place (the fit will place it from the next frame on), or when the skip budget is spent.
+    # 7. Launch (below) the skeleton fit on the final labels when a hidden marker is left that its rigid
+    #    partners cannot place (the fit will place it from the next frame on), or when the skip budget is spent.
     launch = False
     if model.has_skeleton and solver is not None:
         missing = ~labeled & st.ever_seen
