@@ -837,8 +837,10 @@ def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndar
     pool = np.flatnonzero(cand)
     before = point_index.copy()
     small = n_lab + n_spare <= SHAPE_ALL_MAPS + 1  # every labeling of three of its markers is tried
-    _, pw = world_transforms(st.t_root_m, st.R_parent_segment, model.joint_offsets_m)
-    for k in np.flatnonzero((n_lab == 2) & (n_spare > 0) & small & trusted):
+    checked = np.flatnonzero((n_lab == 2) & (n_spare > 0) & small & trusted)
+    if len(checked):
+        _, pw = world_transforms(st.t_root_m, st.R_parent_segment, model.joint_offsets_m)
+    for k in checked:
         lab = np.flatnonzero(labeled & slots & (seg == k))
         slot = np.concatenate([lab, np.flatnonzero(~labeled & slots & (seg == k))])
         reach = _norm(layout[slot] - layout[slot].mean(0)).max() * 2.0 + SEARCH_INLIER_M
