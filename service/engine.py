@@ -566,17 +566,16 @@ class Engine:
 
     def complete(self, outputs: list[SubjectOutput]) -> list[SubjectOutput]:
         """`outputs` of the last `step` with the pose of their own frame. `step` returns as soon as the
-        labels are known, with the pose of the latest completed fit, while the fits launched on this frame's
-        labels still compute (on XLA's thread); this waits for them, so labels can be published first and
-        poses right after. Labels are the same either way. A deferred step's bookkeeping is done here, for
-        every subject before waiting for any fit: their fits then compute beside the others' bookkeeping."""
-        for out in outputs:
-            s = self._subjects.get(out.subject)
+        labels are known, with the pose of the latest completed fit. This does the frame's deferred
+        bookkeeping, which launches the fits on its labels (computed on XLA's thread), for every subject
+        before waiting for any fit, so each fit computes beside the others' bookkeeping; then it waits for
+        them. So labels can be published first and poses right after; the labels are the same either way."""
+        subjects = [self._subjects.get(out.subject) for out in outputs]
+        for s in subjects:
             if s is not None:
                 tracker.finish(s.state)
         done = []
-        for out in outputs:
-            s = self._subjects.get(out.subject)
+        for out, s in zip(outputs, subjects):
             if s is None or not out.solved:
                 done.append(out)
                 continue
