@@ -23,7 +23,7 @@ from recordings.recording import split_label
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from service import calibration, tracker, worker
+from service import calibration, kernels, tracker, worker
 from service.config import EngineConfig
 from service.kinematics import joint_angles, matrix_to_quat_xyzw
 from service.solver import PoseSolver
@@ -170,9 +170,11 @@ class Engine:
 
     # ---------------------------------------------------------------- lifecycle
     def warm_up(self) -> float:
-        """Compile the jitted solve and FK for every padded size (or load them from the persistent cache)."""
+        """Compile the jitted solve and FK for every padded size, and the tracker's compiled loops (or load
+        them from their persistent caches)."""
         t0 = time.perf_counter()
         helper = self._worker().submit(_warm_solver, self._solver_spec)  # the helper process compiles beside us
+        kernels.warm_up()
         self.solver.warm_up()
         try:
             helper.result()

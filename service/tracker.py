@@ -58,6 +58,7 @@ from scipy.spatial.distance import cdist
 
 from protocol.skeleton import N_SEGMENTS, PARENTS
 from service.calibration import rigid_motion, world_transforms
+from service import kernels
 from service.config import EngineConfig
 
 N_PARTNERS = 8
@@ -290,22 +291,10 @@ def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m
 
 def _update_distances(st: TrackState, pos: np.ndarray, labeled: np.ndarray, alpha_min: float = 0.02) -> None:
     """Running mean/variance of pairwise distances among labeled markers (count-based, then EMA with weight
-    alpha_min, and with SLOW_ALPHA for the long-memory pair). Masked updates of the whole (M, M) matrices:
-    cheaper than gathering and scattering the labeled block."""
-    if labeled.sum() < 2:
-        return
-    p = np.where(labeled[:, None], pos, 0.0)
-    d = cdist(p, p)
-    pair = labeled[:, None] & labeled[None, :]
-    n = st.dist_n + pair
-    first = 1.0 / np.maximum(n, 1.0)
-    for mean, var, a in ((st.dist_mean_m, st.dist_var_m2, alpha_min), (st.dist_slow_mean_m, st.dist_slow_var_m2, min(alpha_min, SLOW_ALPHA))):
-        alpha = np.where(pair, np.maximum(first, a), 0.0)
-        delta = d - mean
-        mean += alpha * delta  # in place, as the variance below
-        var *= 1 - alpha
-        var += (1 - alpha) * alpha * delta * delta
-    st.dist_n = n
+    alpha_min, and with SLOW_ALPHA for the long-memory pair), in place. (A compiled loop: `kernels`.)"""
+    if np.count_nonzero(labeled) >= 2:
+        kernels.update_distances(st.dist_n, st.dist_mean_m, st.dist_var_m2, st.dist_slow_mean_m, st.dist_slow_var_m2,
+                                 pos, labeled, alpha_min, min(alpha_min, SLOW_ALPHA))
 
 
 def _update_partners(st: TrackState) -> None:
@@ -335,48 +324,11 @@ def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, whic
     """Predict markers `which` from their rigid partners labeled now (`pos`, NaN elsewhere).
 
     For each marker, the partners' positions when it was last seen are carried onto their positions now by
-    the best rigid transform (weighted Kabsch, batched over markers with a partner mask), and so is the
-    marker. Partners are weighted by how rigidly they keep their distance to it (sigma + 3 mm of skin).
-    Returns (pred (M, 3), spread (M,) = weighted RMS misfit of the partners [m]); NaN where fewer than 3
-    usable partners. Hand-written and batched: one (R, 3, 3) SVD is ~20x faster than a loop of small ones,
-    and batched matmuls cost a fraction of the equivalent einsums on these tiny arrays.
+    the best rigid transform (weighted Kabsch), and so is the marker. Partners are weighted by how rigidly
+    they keep their distance to it (sigma + 3 mm of skin). Returns (pred (M, 3), spread (M,) = weighted
+    RMS misfit of the partners [m]); NaN where fewer than 3 usable partners. (A compiled loop: `kernels`.)
     """
-    m = len(pos)
-    pred = np.full((m, 3), np.nan)
-    spread = np.full(m, np.nan)
-    rows = np.flatnonzero(which)
-    if len(rows) == 0:
-        return pred, spread
-    part = st.partners[rows]  # (R, K)
-    pk = np.maximum(part, 0)
-    src = st.snap_m[rows[:, None], pk]  # (R, K, 3) partner positions when the marker was last seen
-    self_src = st.snap_m[rows, rows]  # (R, 3)
-    w = (part >= 0) & labeled[pk] & ~np.isnan(src[..., 0]) & ~np.isnan(self_src[:, :1])
-    ok = np.count_nonzero(w, axis=1) >= 3
-    if not ok.any():
-        return pred, spread
-    if not ok.all():
-        rows, pk, src, w, self_src = rows[ok], pk[ok], src[ok], w[ok], self_src[ok]
-    wt = np.where(w, 1.0 / (np.sqrt(st.dist_var_m2.ravel()[rows[:, None] * m + pk]) + 0.003) ** 2, 0.0)  # (R, K)
-    wsum = wt.sum(1)
-    src = np.where(w[..., None], src, 0.0)
-    dst = np.where(w[..., None], pos[pk], 0.0)
-    wn = (wt / wsum[:, None])[:, None, :]  # (R, 1, K)
-    cs, cd = (wn @ src)[:, 0], (wn @ dst)[:, 0]  # weighted centroids
-    a, b = src - cs[:, None], dst - cd[:, None]
-    H = (a * wt[..., None]).transpose(0, 2, 1) @ b  # sum_k wt_k a_k b_k^T
-    U, _, Vt = np.linalg.svd(H)
-    V, Ut = Vt.transpose(0, 2, 1), U.transpose(0, 2, 1)
-    R = V @ Ut
-    flip = _det3(R) < 0  # a reflection: flip the least significant axis
-    if flip.any():
-        V[flip, :, 2] *= -1
-        R[flip] = V[flip] @ Ut[flip]
-    # sum_k wt_k |R a_k - b_k|^2 = sum_k wt_k (|a_k|^2 + |b_k|^2) - 2 tr(R H)
-    sq = (wt * ((a * a).sum(2) + (b * b).sum(2))).sum(1)
-    spread[rows] = np.sqrt(np.maximum(sq - 2.0 * np.einsum("rij,rji->r", R, H), 0.0) / wsum)
-    pred[rows] = (R @ (self_src - cs)[..., None])[..., 0] + cd
-    return pred, spread
+    return kernels.rigid_predict(st.partners, st.snap_m, st.dist_var_m2, pos, labeled, which)
 
 
 def _distance_stats(st: TrackState, slow: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -391,27 +343,9 @@ def distance_misfit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, rows: 
     partners with the smallest sigma that are labeled now. Unlike the rigid prediction, which follows the
     last frames, this remembers the body, so a wrong label cannot become its own reference; `slow` takes
     the long-memory statistics. NaN for markers with fewer than 2 such partners."""
-    m = len(cur)
-    out = np.full(m, np.nan)
-    idx = np.arange(m) if rows is None else np.asarray(rows)
-    if len(idx) == 0:
-        return out
-    part = st.partners[idx]
-    pk = np.maximum(part, 0)
-    flat = idx[:, None] * m + pk  # (R, K) into the raveled (M, M) statistics: cheaper than 2-D fancy indexing
-    valid = (part >= 0) & labeled[pk] & labeled[idx][:, None] & (st.dist_n.ravel()[flat] >= 10)
     mean, var = _distance_stats(st, slow)
-    sigma = np.sqrt(var.ravel()[flat]) + 0.003
-    z = np.where(valid, np.abs(_norm(cur[idx][:, None, :] - cur[pk]) - mean.ravel()[flat]) / sigma, np.inf)
-    # keep the 3 most rigid valid partners of each marker (fancy indexing: take_along_axis costs 3x)
-    rr = np.arange(len(idx))
-    order = np.argsort(np.where(valid, sigma, np.inf), axis=1)[:, :3]
-    zk = z[rr[:, None], order]
-    n = np.isfinite(zk).sum(1)
-    zk.sort(axis=1)
-    med = zk[rr, np.maximum((n - 1) // 2, 0)]
-    out[idx] = np.where(n >= 2, med, np.nan)
-    return out
+    idx = np.arange(len(cur)) if rows is None else np.asarray(rows, dtype=np.int64)
+    return kernels.distance_misfit(st.partners, st.dist_n, mean, var, cur, labeled, idx)
 
 
 def _misfit_at(st: TrackState, i: int, x: np.ndarray, cur: np.ndarray, labeled: np.ndarray, exclude: int = -1,
@@ -771,40 +705,10 @@ def _kabsch_rms(A: np.ndarray, B: np.ndarray, w: np.ndarray) -> np.ndarray:
     """RMS misfit (C,) of the best rigid motion taking A onto B, both (C, N, 3), over the points where
     w (C, N) is True. The optimal trace is s1 + s2 + sign(det H) s3 over the singular values of the
     cross-covariance H (Kabsch), so no rotation is formed, and they are the square roots of H^T H's
-    eigenvalues, in closed form (the trigonometric solution of the characteristic cubic). Hand-written
-    because numpy's batched SVD of 3 x 3 matrices costs ~4 us each, and written out entry by entry because
-    numpy's batched det and small matmuls cost more than the arithmetic: 720 relabellings of a 5-marker
-    segment take ~0.5 ms, against ~1 ms with np.linalg.det and ~3 ms with the SVD."""
-    wf = w.astype(float)
-    n = wf.sum(1)
-    wn = wf / n[:, None]
-    # (einsum reduces over the middle axis ~5x faster than .sum(1) here)
-    a = (A - np.einsum("cn,cni->ci", wn, A)[:, None]) * wf[..., None]
-    b = (B - np.einsum("cn,cni->ci", wn, B)[:, None]) * wf[..., None]
-    H = a.transpose(0, 2, 1) @ b
-    h0, h1, h2 = H[:, :, 0], H[:, :, 1], H[:, :, 2]  # M = H^T H, its six distinct entries
-    m00, m11, m22 = (h0 * h0).sum(1), (h1 * h1).sum(1), (h2 * h2).sum(1)
-    m01, m02, m12 = (h0 * h1).sum(1), (h0 * h2).sum(1), (h1 * h2).sum(1)
-    q = (m00 + m11 + m22) / 3.0
-    d0, d1, d2 = m00 - q, m11 - q, m22 - q
-    p = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * (m01 * m01 + m02 * m02 + m12 * m12)) / 6.0)
-    det_shifted = d0 * (d1 * d2 - m12 * m12) - m01 * (m01 * d2 - m12 * m02) + m02 * (m01 * m12 - d1 * m02)  # det(M - qI)
-    safe = np.where(p > 0, p, 1.0)
-    phi = np.arccos(np.clip(det_shifted / (2.0 * safe**3), -1.0, 1.0)) / 3.0
-    e1 = q + 2.0 * p * np.cos(phi)  # M's eigenvalues, largest first
-    e3 = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-    s = np.sqrt(np.maximum(np.stack([e1, 3.0 * q - e1 - e3, e3]), 0.0))
-    trace = s[0] + s[1] + np.sign(_det3(H)) * s[2]
-    sq = np.einsum("cni,cni->c", a, a) + np.einsum("cni,cni->c", b, b) - 2.0 * trace
-    return np.sqrt(np.maximum(sq, 0.0) / n)
-
-
-def _det3(M: np.ndarray) -> np.ndarray:
-    """Determinants (C,) of 3 x 3 matrices (C, 3, 3), written out: ~8x faster than np.linalg.det for
-    hundreds of them, and no slower for a few."""
-    r0, r1, r2 = M[:, 0], M[:, 1], M[:, 2]
-    return (r0[:, 0] * (r1[:, 1] * r2[:, 2] - r1[:, 2] * r2[:, 1]) - r0[:, 1] * (r1[:, 0] * r2[:, 2] - r1[:, 2] * r2[:, 0])
-            + r0[:, 2] * (r1[:, 0] * r2[:, 1] - r1[:, 1] * r2[:, 0]))
+    eigenvalues, in closed form (the trigonometric solution of the characteristic cubic)."""
+    # (a compiled loop, `kernels`: one call instead of ~50 numpy calls on small batches; A and B may be
+    # broadcast views, the kernel takes writable contiguous arrays of one type: one compilation)
+    return kernels.kabsch_rms(np.require(A, np.float64, "CW"), np.require(B, np.float64, "CW"), np.require(w, bool, "CW"))
 
 
 def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndarray, cand: np.ndarray,

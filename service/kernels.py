@@ -1,0 +1,229 @@
+"""Compiled inner loops of the per-frame tracker (numba).
+
+Why hand-written loops: a subject has ~40 markers, so every numpy call in `tracker` works on arrays of a
+few hundred numbers and costs its ~1-3 us of call overhead, not arithmetic. A frame made ~150 such calls
+(~0.5 ms of the ~1 ms a 41-marker frame took, profiled on 135_02 at L2). The loops below do the same
+arithmetic in one compiled call each. Each mirrors the numpy formulation it replaced, which its docstring
+names, and `tests/test_kernels.py` checks it against that formulation.
+
+Compiled once per machine: `cache=True` keeps the machine code beside this file (or in NUMBA_CACHE_DIR),
+and `warm_up` loads or compiles every kernel before a daemon says it is ready.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numba
+import numpy as np
+
+_jit = numba.njit(cache=True, nogil=True, fastmath=False)
+
+SKIN_M = 0.003  # added to a pair distance's sigma: skin and marker wobble no statistic catches
+
+
+@_jit
+def rigid_predict(partners, snap, dist_var, pos, labeled, which):
+    """For each marker i where `which[i]`, carry its partners' positions when it was last seen (`snap[i, j]`) onto
+    their positions now (`pos`, labeled ones) by the weighted best rigid motion (Kabsch, weights 1 /
+    (sigma + 3 mm)^2), and the marker with them. Returns pred (M, 3) and spread (M,), the partners'
+    weighted RMS misfit; NaN where fewer than 3 partners are usable. (tracker.rigid_predictions)"""
+    m = pos.shape[0]
+    n_part = partners.shape[1]
+    pred = np.full((m, 3), np.nan)
+    spread = np.full(m, np.nan)
+    src = np.empty((n_part, 3))
+    dst = np.empty((n_part, 3))
+    wt = np.empty(n_part)
+    H = np.empty((3, 3))
+    for i in range(m):
+        if not which[i] or np.isnan(snap[i, i, 0]):
+            continue
+        n = 0
+        for k in range(n_part):
+            j = partners[i, k]
+            if j < 0 or not labeled[j] or np.isnan(snap[i, j, 0]):
+                continue
+            for c in range(3):
+                src[n, c] = snap[i, j, c]
+                dst[n, c] = pos[j, c]
+            wt[n] = 1.0 / (math.sqrt(dist_var[i, j]) + SKIN_M) ** 2
+            n += 1
+        if n < 3:
+            continue
+        wsum = 0.0
+        cs = np.zeros(3)
+        cd = np.zeros(3)
+        for k in range(n):
+            wsum += wt[k]
+            for c in range(3):
+                cs[c] += wt[k] * src[k, c]
+                cd[c] += wt[k] * dst[k, c]
+        cs /= wsum
+        cd /= wsum
+        H[:] = 0.0
+        sq = 0.0
+        for k in range(n):
+            for a in range(3):
+                da = src[k, a] - cs[a]
+                sq += wt[k] * (da * da + (dst[k, a] - cd[a]) ** 2)
+                for b in range(3):
+                    H[a, b] += wt[k] * da * (dst[k, b] - cd[b])
+        U, _, Vt = np.linalg.svd(H)
+        R = Vt.T @ U.T
+        if np.linalg.det(R) < 0:  # a reflection: flip the least significant axis
+            V = Vt.T.copy()
+            V[:, 2] *= -1.0
+            R = V @ U.T
+        trace = 0.0
+        for a in range(3):
+            for b in range(3):
+                trace += R[a, b] * H[b, a]
+        spread[i] = math.sqrt(max(sq - 2.0 * trace, 0.0) / wsum)
+        for a in range(3):
+            acc = cd[a]
+            for b in range(3):
+                acc += R[a, b] * (snap[i, i, b] - cs[b])
+            pred[i, a] = acc
+    return pred, spread
+
+
+@_jit
+def distance_misfit(partners, dist_n, mean, var, cur, labeled, rows):
+    """The median z = |d - mean| / (sigma + 3 mm) of each marker in `rows` over (up to) its 3 partners
+    with the smallest sigma among those labeled now and sampled at least 10 times; NaN with fewer than
+    2 such partners or when the marker is not labeled. Returns (M,), NaN but at `rows`. (tracker.distance_misfit)"""
+    n_rows = rows.shape[0]
+    n_part = partners.shape[1]
+    out = np.full(cur.shape[0], np.nan)
+    sig = np.empty(n_part)
+    z = np.empty(n_part)
+    for r in range(n_rows):
+        i = rows[r]
+        if not labeled[i]:
+            continue
+        n = 0
+        for k in range(n_part):
+            j = partners[i, k]
+            if j < 0 or not labeled[j] or dist_n[i, j] < 10:
+                continue
+            sig[n] = math.sqrt(var[i, j]) + SKIN_M
+            d = math.sqrt((cur[i, 0] - cur[j, 0]) ** 2 + (cur[i, 1] - cur[j, 1]) ** 2 + (cur[i, 2] - cur[j, 2]) ** 2)
+            z[n] = abs(d - mean[i, j]) / sig[n]
+            n += 1
+        if n < 2:
+            continue
+        # the 3 smallest sigmas (first found wins a tie), then the median of their z (the lower of two)
+        take = min(n, 3)
+        best = np.empty(take)
+        used = np.zeros(n, np.bool_)
+        for t in range(take):
+            b = -1
+            for k in range(n):
+                if not used[k] and (b < 0 or sig[k] < sig[b]):
+                    b = k
+            used[b] = True
+            best[t] = z[b]
+        best.sort()
+        out[i] = best[(take - 1) // 2]
+    return out
+
+
+@_jit
+def update_distances(dist_n, mean, var, slow_mean, slow_var, pos, labeled, alpha_min, slow_alpha):
+    """Running mean and variance of the distances between labeled markers, in place: a plain mean over
+    the first 1/alpha samples, then an exponential one with weight alpha_min (slow_alpha for the
+    long-memory pair). (tracker._update_distances)"""
+    m = pos.shape[0]
+    for i in range(m):
+        if not labeled[i]:
+            continue
+        for j in range(m):
+            if not labeled[j]:
+                continue
+            d = math.sqrt((pos[i, 0] - pos[j, 0]) ** 2 + (pos[i, 1] - pos[j, 1]) ** 2 + (pos[i, 2] - pos[j, 2]) ** 2)
+            n = dist_n[i, j] + 1
+            dist_n[i, j] = n
+            first = 1.0 / n
+            for M, V, a in ((mean, var, alpha_min), (slow_mean, slow_var, slow_alpha)):
+                alpha = max(first, a)
+                delta = d - M[i, j]
+                M[i, j] += alpha * delta
+                V[i, j] = (1.0 - alpha) * V[i, j] + (1.0 - alpha) * alpha * delta * delta
+
+
+@_jit
+def kabsch_rms(A, B, w):
+    """RMS misfit (C,) of the best rigid motion taking A onto B, both (C, N, 3), over the points where w
+    (C, N) is True: the optimal trace is s1 + s2 + sign(det H) s3 over the singular values of the
+    cross-covariance H, the square roots of H^T H's eigenvalues, solved in closed form (the trigonometric
+    solution of the characteristic cubic). (tracker._kabsch_rms)"""
+    n_c, n_p = A.shape[0], A.shape[1]
+    out = np.empty(n_c)
+    H = np.empty((3, 3))
+    for c in range(n_c):
+        cnt = 0
+        ca = np.zeros(3)
+        cb = np.zeros(3)
+        for p in range(n_p):
+            if w[c, p]:
+                cnt += 1
+                for k in range(3):
+                    ca[k] += A[c, p, k]
+                    cb[k] += B[c, p, k]
+        if cnt == 0:
+            out[c] = np.nan
+            continue
+        ca /= cnt
+        cb /= cnt
+        H[:] = 0.0
+        sq = 0.0
+        for p in range(n_p):
+            if not w[c, p]:
+                continue
+            for a in range(3):
+                da = A[c, p, a] - ca[a]
+                db = B[c, p, a] - cb[a]
+                sq += da * da + db * db
+                for b in range(3):
+                    H[a, b] += da * (B[c, p, b] - cb[b])
+        m00 = H[0, 0] ** 2 + H[1, 0] ** 2 + H[2, 0] ** 2  # M = H^T H
+        m11 = H[0, 1] ** 2 + H[1, 1] ** 2 + H[2, 1] ** 2
+        m22 = H[0, 2] ** 2 + H[1, 2] ** 2 + H[2, 2] ** 2
+        m01 = H[0, 0] * H[0, 1] + H[1, 0] * H[1, 1] + H[2, 0] * H[2, 1]
+        m02 = H[0, 0] * H[0, 2] + H[1, 0] * H[1, 2] + H[2, 0] * H[2, 2]
+        m12 = H[0, 1] * H[0, 2] + H[1, 1] * H[1, 2] + H[2, 1] * H[2, 2]
+        q = (m00 + m11 + m22) / 3.0
+        d0, d1, d2 = m00 - q, m11 - q, m22 - q
+        p6 = math.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * (m01 * m01 + m02 * m02 + m12 * m12)) / 6.0)
+        det_shifted = d0 * (d1 * d2 - m12 * m12) - m01 * (m01 * d2 - m12 * m02) + m02 * (m01 * m12 - d1 * m02)
+        safe = p6 if p6 > 0 else 1.0
+        phi = math.acos(min(max(det_shifted / (2.0 * safe**3), -1.0), 1.0)) / 3.0
+        e1 = q + 2.0 * p6 * math.cos(phi)
+        e3 = q + 2.0 * p6 * math.cos(phi + 2.0 * math.pi / 3.0)
+        s1 = math.sqrt(max(e1, 0.0))
+        s2 = math.sqrt(max(3.0 * q - e1 - e3, 0.0))
+        s3 = math.sqrt(max(e3, 0.0))
+        det = (H[0, 0] * (H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1]) - H[0, 1] * (H[1, 0] * H[2, 2] - H[1, 2] * H[2, 0])
+               + H[0, 2] * (H[1, 0] * H[2, 1] - H[1, 1] * H[2, 0]))
+        sign = 1.0 if det > 0 else (-1.0 if det < 0 else 0.0)
+        out[c] = math.sqrt(max(sq - 2.0 * (s1 + s2 + sign * s3), 0.0) / cnt)
+    return out
+
+
+def warm_up() -> float:
+    """Compile (or load from the cache) every kernel with the argument types the tracker passes."""
+    t0 = time.perf_counter()
+    m, k = 4, 3
+    partners = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]], np.int64)
+    pos = np.random.default_rng(0).normal(size=(m, 3))
+    snap = np.broadcast_to(pos, (m, m, 3)).copy()
+    stats = np.ones((m, m))
+    labeled = np.ones(m, bool)
+    rows = np.arange(m, dtype=np.int64)
+    rigid_predict(partners, snap, stats, pos, labeled, labeled)
+    distance_misfit(partners, stats, stats, stats, pos, labeled, rows)
+    update_distances(stats.copy(), stats.copy(), stats.copy(), stats.copy(), stats.copy(), pos, labeled, 0.02, 0.002)
+    kabsch_rms(snap, snap, np.ones((m, k + 1), bool))
+    return time.perf_counter() - t0
