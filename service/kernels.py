@@ -21,6 +21,7 @@ import numpy as np
 _jit = numba.njit(cache=True, nogil=True, fastmath=False)
 
 SKIN_M = 0.003  # added to a pair distance's sigma: skin and marker wobble no statistic catches
+BIG = 1e9  # the cost of a pair the Hungarian method must not take
 
 
 @_jit
@@ -259,6 +260,97 @@ def kabsch_rms(A, B, w):
     return out
 
 
+@_jit
+def gated_pairs(pred, gates, points, cand):
+    """The (marker, point) pairs within the markers' gates: marker i (finite pred[i], gates[i] > 0) and
+    candidate point j (cand[j]) with |pred[i] - points[j]|^2 < gates[i]^2. Returns (rows, cols, cost,
+    n_row, n_col): with no choice to make (each marker with a point in its gate has one, and no point is in
+    two gates) the pairs themselves, rows (P,) and cols (P,) with cost (0, 0); otherwise the markers and
+    points that have any pair, rows (R,) and cols (C,), cost (R, C) = d^2 / gate^2 (BIG outside the gate)
+    for the Hungarian method, and n_row (R,) / n_col (C,) the pairs each takes part in. (tracker._assign)"""
+    m, n = pred.shape[0], points.shape[0]
+    n_row = np.zeros(m, np.int64)
+    n_col = np.zeros(n, np.int64)
+    first = np.full(m, -1)
+    for i in range(m):
+        g = gates[i]
+        if not g > 0 or not np.isfinite(pred[i, 0]):
+            continue
+        g2 = g * g
+        for j in range(n):
+            if cand[j]:
+                d2 = (pred[i, 0] - points[j, 0]) ** 2 + (pred[i, 1] - points[j, 1]) ** 2 + (pred[i, 2] - points[j, 2]) ** 2
+                if d2 < g2:
+                    n_row[i] += 1
+                    n_col[j] += 1
+                    if first[i] < 0:
+                        first[i] = j
+    rows = np.flatnonzero(n_row)
+    cols = np.flatnonzero(n_col)
+    if n_row.sum() == len(rows) == len(cols):
+        return rows, first[rows], np.empty((0, 0)), n_row[rows], np.ones(len(rows), np.int64)
+    cost = np.full((len(rows), len(cols)), BIG)
+    col_of = np.full(n, -1)
+    col_of[cols] = np.arange(len(cols))
+    for r in range(len(rows)):
+        i = rows[r]
+        g2 = gates[i] * gates[i]
+        for j in cols:
+            d2 = (pred[i, 0] - points[j, 0]) ** 2 + (pred[i, 1] - points[j, 1]) ** 2 + (pred[i, 2] - points[j, 2]) ** 2
+            if d2 < g2:
+                cost[r, col_of[j]] = d2 / g2
+    return rows, cols, cost, n_row[rows], n_col[cols]
+
+
+@_jit
+def commit_motion(pos, vel, acc, vel_measured, hidden, was_labeled, cur, labeled, fallback, dt, max_speed, max_acc):
+    """One frame's labels folded into the markers' motion; returns new (pos, vel, acc, vel_measured,
+    hidden). A marker labeled on both frames gets the measured velocity (smoothed 0.7 / 0.3 with the old
+    one) and, when its old velocity was measured too, an acceleration; a re-acquired one keeps its last
+    velocity, an unlabeled one's decays by 0.8 a frame; speeds and accelerations are capped. Unlabeled
+    markers go to `fallback`. (tracker._commit)"""
+    m = pos.shape[0]
+    pos2, vel2, acc2 = np.empty((m, 3)), np.empty((m, 3)), np.zeros((m, 3))
+    measured = np.empty(m, np.bool_)
+    hidden2 = np.empty_like(hidden)
+    nv = np.empty(3)
+    for i in range(m):
+        both = labeled[i] and was_labeled[i]
+        decay = 1.0 if labeled[i] else 0.8  # (labeled but not before: re-acquired)
+        speed = 0.0
+        for c in range(3):
+            nv[c] = (cur[i, c] - pos[i, c]) / dt if both else vel[i, c] * decay
+            speed += nv[c] * nv[c]
+        scale = min(1.0, max_speed / max(math.sqrt(speed), 1e-9))
+        a2 = 0.0
+        for c in range(3):
+            v = nv[c] * scale
+            vel2[i, c] = 0.7 * v + 0.3 * vel[i, c] if both else v
+            if both and vel_measured[i]:
+                acc2[i, c] = (vel2[i, c] - vel[i, c]) / dt
+                a2 += acc2[i, c] ** 2
+            pos2[i, c] = cur[i, c] if labeled[i] else fallback[i, c]
+        scale = min(1.0, max_acc / max(math.sqrt(a2), 1e-9))
+        for c in range(3):
+            acc2[i, c] *= scale
+        measured[i] = both
+        hidden2[i] = 0 if labeled[i] else hidden[i] + 1
+    return pos2, vel2, acc2, measured, hidden2
+
+
+@_jit
+def snapshot(snap, cur, labeled):
+    """Row i of snap (M, M, 3), for each labeled marker i, := every labeled marker's position now (NaN for
+    the others), in place. (tracker._snapshot)"""
+    m = cur.shape[0]
+    for i in range(m):
+        if not labeled[i]:
+            continue
+        for j in range(m):
+            for c in range(3):
+                snap[i, j, c] = cur[j, c] if labeled[j] else np.nan
+
+
 def warm_up() -> float:
     """Compile (or load from the cache) every kernel with the argument types the tracker passes."""
     t0 = time.perf_counter()
@@ -273,4 +365,8 @@ def warm_up() -> float:
     distance_misfit(partners, stats, stats, stats, pos, labeled, rows)
     update_distances(stats.copy(), stats.copy(), stats.copy(), stats.copy(), stats.copy(), pos, labeled, 0.02, 0.002)
     kabsch_rms(snap, snap, np.ones((m, k + 1), bool))
+    gated_pairs(pos, np.ones(m), pos, labeled)
+    hidden = np.zeros(m, np.int64)
+    commit_motion(pos, pos, pos, labeled, hidden, labeled, pos, labeled, pos, 0.01, 15.0, 500.0)
+    snapshot(snap, pos, labeled)
     return time.perf_counter() - t0

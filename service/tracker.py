@@ -228,6 +228,8 @@ class TrackState:
     shape_checks: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(N_SEGMENTS))
     # `_complete_by_free_point`: per segment, the relabelling asked for on the last checks, and how many running
     complete_votes: dict = dataclasses.field(default_factory=dict)
+    # `_joints_m`: the segment origins of the pose (t_root_m, R_parent_segment, joint offsets) they were computed for
+    joints_cache: tuple | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -314,10 +316,7 @@ def _update_partners(st: TrackState) -> None:
 def _snapshot(st: TrackState, pos: np.ndarray, labeled: np.ndarray) -> None:
     """Remember, for each labeled marker, where every labeled marker is now. Keeping all of them (not only
     the current partners) lets the partner lists change while a marker is hidden."""
-    idx = np.flatnonzero(labeled)
-    if len(idx) == 0:
-        return
-    st.snap_m[idx] = np.where(labeled[:, None], pos, np.nan)[None]
+    kernels.snapshot(st.snap_m, pos, labeled)
 
 
 def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, which: np.ndarray):
@@ -521,6 +520,16 @@ def _relocate(st: TrackState, points: np.ndarray, cand: np.ndarray, gate_m: floa
     return out
 
 
+def _joints_m(model: SubjectModel, st: TrackState) -> np.ndarray:
+    """World positions (14, 3) of the segment origins in the current pose. Kept until the pose changes (a
+    fit is collected: new arrays, never changed in place), since the searches ask several times a frame."""
+    pose = (st.t_root_m, st.R_parent_segment, model.joint_offsets_m)
+    c = st.joints_cache
+    if c is None or any(a is not b for a, b in zip(c[:3], pose)):
+        c = st.joints_cache = (*pose, world_transforms(*pose)[1])
+    return c[3]
+
+
 def _observed_segments(marker_segment: np.ndarray, labeled: np.ndarray) -> np.ndarray:
     """(N_SEGMENTS,) bool: segments with at least one labeled marker."""
     observed = np.zeros(N_SEGMENTS, bool)
@@ -540,7 +549,7 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
     marker, and the hypothesis placing most markers on points wins, if no other assignment does as well
     (two mirror-image markers alone stay unfound)."""
     found: dict[int, int] = {}
-    _, pw = world_transforms(st.t_root_m, st.R_parent_segment, model.joint_offsets_m)
+    pw = _joints_m(model, st)
     observed = _observed_segments(model.marker_segment, labeled)
     pool = np.flatnonzero(cand)
     if len(pool) == 0:
@@ -744,7 +753,7 @@ def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndar
     small = n_lab + n_spare <= SHAPE_ALL_MAPS + 1  # every labeling of three of its markers is tried
     checked = np.flatnonzero((n_lab == 2) & (n_spare > 0) & small & trusted)
     if len(checked):
-        _, pw = world_transforms(st.t_root_m, st.R_parent_segment, model.joint_offsets_m)
+        pw = _joints_m(model, st)
     for k in checked:
         lab = np.flatnonzero(labeled & slots & (seg == k))
         slot = np.concatenate([lab, np.flatnonzero(~labeled & slots & (seg == k))])
@@ -974,28 +983,11 @@ def _assign(pred: np.ndarray, gates: np.ndarray, points: np.ndarray, cand: np.nd
     Returns (rows, point_idx, contested): contested[k] is True when pair k was a choice — its marker had
     another point in its gate, or its point was in another marker's gate — which is where swaps and
     ghosts slip in, so only those need the (costlier) rigid check."""
-    empty = np.empty(0, int)
-    rows = np.flatnonzero(np.isfinite(pred[:, 0]) & (gates > 0))
-    cols = np.flatnonzero(cand)
-    if len(rows) == 0 or len(cols) == 0:
-        return empty, empty, np.empty(0, bool)
-    d2 = cdist(pred[rows], points[cols], "sqeuclidean")
-    g2 = gates[rows, None] ** 2
-    ok = d2 < g2
-    n_row, n_col = ok.sum(1), ok.sum(0)
-    r_any = n_row > 0
-    n_pairs = int(n_row.sum())
-    if n_pairs == 0:
-        return empty, empty, np.empty(0, bool)
-    if n_pairs == int(r_any.sum()) == int(np.count_nonzero(n_col)):  # no choice to make: no Hungarian solve
-        r = np.flatnonzero(r_any)
-        return rows[r], cols[np.argmax(ok[r], axis=1)], np.zeros(len(r), bool)
-    # Quick reject of rows/cols with nothing in range keeps the Hungarian problem small.
-    c_any = n_col > 0
-    rows, cols, n_row, n_col = rows[r_any], cols[c_any], n_row[r_any], n_col[c_any]
-    cost = np.where(ok, d2 / g2, _BIG)[r_any][:, c_any]
-    r, c = linear_sum_assignment(cost)
-    keep = cost[r, c] < _BIG
+    rows, cols, cost, n_row, n_col = kernels.gated_pairs(pred, gates, points, cand)
+    if cost.shape[0] == 0:  # no choice to make: no Hungarian solve
+        return rows, cols, np.zeros(len(rows), bool)
+    r, c = linear_sum_assignment(cost)  # (only markers and points with a pair in the gates: a small problem)
+    keep = cost[r, c] < kernels.BIG
     r, c = r[keep], c[keep]
     contested = (n_row[r] > 1) | (n_col[c] > 1)
     return rows[r], cols[c], contested
@@ -1278,26 +1270,17 @@ def observe(
 
 def _commit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, fallback: np.ndarray, t_ns: int, dt: float) -> None:
     """Fold one frame's labels into the state: positions, velocities, partner statistics, snapshots."""
-    both = labeled & st.labeled
     # A velocity needs two observations. A re-acquired marker's last position is only a prediction (from
     # partners that may have been hidden too, or coasting): (cur - prediction) / dt would turn the
     # prediction's error into speed, and the next frame's NNT would follow it, through a gate it also
-    # widens, onto a neighbour. So a re-acquired marker keeps its last measured velocity (decayed while hidden).
-    back = labeled & ~st.labeled
-    new_vel = np.where(both[:, None], (cur - st.pos_m) / dt, st.vel_m_s * np.where(back, 1.0, 0.8)[:, None])
-    speed = _norm(new_vel)[:, None]
-    new_vel *= np.minimum(1.0, MAX_SPEED_M_S / np.maximum(speed, 1e-9))
-    # light smoothing against noise, not so much that fast markers lag
-    prev_vel = st.vel_m_s
-    st.vel_m_s = np.where(both[:, None], 0.7 * new_vel + 0.3 * st.vel_m_s, new_vel)
-    # acceleration from two measured velocities: at 50 Hz a serving arm's hand turns 4 cm off its
-    # constant-velocity path in one frame, onto its neighbour
-    acc = np.where((both & st.vel_measured)[:, None], (st.vel_m_s - prev_vel) / dt, 0.0)
-    st.acc_m_s2 = acc * np.minimum(1.0, MAX_ACC_M_S2 / np.maximum(_norm(acc), 1e-9))[:, None]
-    st.vel_measured = both
+    # widens, onto a neighbour. So a re-acquired marker keeps its last measured velocity (decayed while
+    # hidden). Velocities are smoothed lightly against noise, not so much that fast markers lag; an
+    # acceleration comes from two measured velocities: at 50 Hz a serving arm's hand turns 4 cm off its
+    # constant-velocity path in one frame, onto its neighbour. (A compiled loop: `kernels.commit_motion`.)
+    st.pos_m, st.vel_m_s, st.acc_m_s2, st.vel_measured, st.hidden_frames = kernels.commit_motion(
+        st.pos_m, st.vel_m_s, st.acc_m_s2, st.vel_measured, st.hidden_frames, st.labeled, cur, labeled, fallback,
+        dt, MAX_SPEED_M_S, MAX_ACC_M_S2)
     st.acc_dt_s = dt
-    st.hidden_frames = np.where(labeled, 0, st.hidden_frames + 1)
-    st.pos_m = np.where(labeled[:, None], cur, fallback)
     st.labeled = labeled
     st.ever_seen |= labeled
     st.last_t_ns = t_ns
