@@ -80,6 +80,7 @@ class EngineError(ValueError):
 
 
 HISTORY_FRAMES = 240  # labeled frames kept per subject for (re)calibration
+REPEATS_BY_PAIRS = 512  # frames of up to this many points look for repeated points pair by pair, larger ones by k-d tree
 REFINE_RMS_M = 0.012  # a skeleton fitting its markers worse than this [m] RMS is re-aligned ...
 REFINE_EVERY_FRAMES = 240  # ... at most once per this many frames (then twice as long, ...)
 #: A refinement that moves a joint farther than this from where the skeleton had it is not taken: bones do
@@ -728,6 +729,8 @@ def _repeats(points: np.ndarray, radius_m: float) -> np.ndarray:
     the later one): a marker reconstructed twice is one marker, and only one of its copies is labeled."""
     if radius_m <= 0 or len(points) < 2:
         return np.empty(0, int)
+    if len(points) <= REPEATS_BY_PAIRS:
+        return kernels.repeats(points, radius_m)
     pairs = cKDTree(points).query_pairs(radius_m, output_type="ndarray")
     return np.unique(pairs.max(1)) if len(pairs) else np.empty(0, int)
 

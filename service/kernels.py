@@ -351,6 +351,45 @@ def snapshot(snap, cur, labeled):
                 snap[i, j, c] = cur[j, c] if labeled[j] else np.nan
 
 
+@_jit
+def world_transforms(t_root, R_parent_segment, joint_offsets, parents):
+    """World rotations (S, 3, 3) and origins (S, 3) of the segments of one pose; parents (S,) lists each
+    segment's parent (-1 for the root), parents before children. (calibration.world_transforms, one pose)"""
+    n = R_parent_segment.shape[0]
+    Rs = np.empty((n, 3, 3))
+    ps = np.empty((n, 3))
+    for i in range(n):
+        p = parents[i]
+        if p < 0:
+            Rs[i] = R_parent_segment[i]
+            ps[i] = t_root
+            continue
+        for a in range(3):
+            ps[i, a] = ps[p, a]
+            for b in range(3):
+                ps[i, a] += Rs[p, a, b] * joint_offsets[i, b]
+                acc = 0.0
+                for c in range(3):
+                    acc += Rs[p, a, c] * R_parent_segment[i, c, b]
+                Rs[i, a, b] = acc
+    return Rs, ps
+
+
+@_jit
+def repeats(points, radius_m):
+    """Indices of the points within radius_m of an earlier point of the frame (of each close pair, the
+    later one). All pairs: for the few dozen points of a frame, cheaper than building a k-d tree."""
+    n = points.shape[0]
+    r2 = radius_m * radius_m
+    out = np.zeros(n, np.bool_)
+    for j in range(n):
+        for i in range(j):
+            if (points[i, 0] - points[j, 0]) ** 2 + (points[i, 1] - points[j, 1]) ** 2 + (points[i, 2] - points[j, 2]) ** 2 <= r2:
+                out[j] = True
+                break
+    return np.flatnonzero(out)
+
+
 def warm_up() -> float:
     """Compile (or load from the cache) every kernel with the argument types the tracker passes."""
     t0 = time.perf_counter()
@@ -369,4 +408,6 @@ def warm_up() -> float:
     hidden = np.zeros(m, np.int64)
     commit_motion(pos, pos, pos, labeled, hidden, labeled, pos, labeled, pos, 0.01, 15.0, 500.0)
     snapshot(snap, pos, labeled)
+    world_transforms(pos[0], np.broadcast_to(np.eye(3), (m, 3, 3)).copy(), pos, np.arange(-1, m - 1))
+    repeats(pos, 0.01)
     return time.perf_counter() - t0

@@ -148,6 +148,7 @@ MAX_SPEED_M_S = 15.0  # markers never move faster; caps velocities estimated fro
 MAX_ACC_M_S2 = 300.0  # ... nor accelerate faster (a tennis serve's hand reaches ~200 m/s^2)
 SKELETON_VELOCITY_GAP_S = 0.05  # two fits at most this far apart give the skeleton markers' velocity
 _BIG = 1e9
+_PARENTS = np.asarray(PARENTS, np.int64)
 
 
 def _norm(v: np.ndarray) -> np.ndarray:
@@ -526,7 +527,8 @@ def _joints_m(model: SubjectModel, st: TrackState) -> np.ndarray:
     pose = (st.t_root_m, st.R_parent_segment, model.joint_offsets_m)
     c = st.joints_cache
     if c is None or any(a is not b for a, b in zip(c[:3], pose)):
-        c = st.joints_cache = (*pose, world_transforms(*pose)[1])
+        # (a fit's arrays come read-only from XLA: copies, so the kernel sees one type and compiles once)
+        c = st.joints_cache = (*pose, kernels.world_transforms(*(np.require(a, np.float64, "CW") for a in pose), _PARENTS)[1])
     return c[3]
 
 
