@@ -86,7 +86,8 @@ class ServiceConfig:
     max_queue_frames: int = 64
     """Frames the daemon buffers (ZeroMQ high-water mark); beyond it the oldest are dropped and counted."""
     cache_dir: str = "~/.cache/mocap-labeler/jax"
-    """JAX persistent compilation cache directory ("" disables it)."""
+    """Compilation caches: JAX's persistent cache, and under numba/ the tracker's compiled loops ("" disables
+    JAX's; numba then keeps its default, beside the source)."""
     busy_poll_s: float = 0.0
     """For this long [s] after each frame the daemon waits for the next by polling without sleeping (0 = it
     sleeps until a message arrives). A stream faster than 1/busy_poll_s keeps one core spinning between
