@@ -202,11 +202,38 @@ def update_distances(dist_n, mean, var, slow_mean, slow_var, pos, labeled, alpha
 
 
 @_jit
+def _misfit(H, sq, cnt):
+    """RMS misfit of the best rigid motion from the centred cross-covariance H (3, 3), the centred points'
+    summed squares sq and their count: the optimal trace is s1 + s2 + sign(det H) s3 over H's singular
+    values, the square roots of H^T H's eigenvalues, solved in closed form (the trigonometric solution of
+    the characteristic cubic)."""
+    m00 = H[0, 0] ** 2 + H[1, 0] ** 2 + H[2, 0] ** 2  # M = H^T H
+    m11 = H[0, 1] ** 2 + H[1, 1] ** 2 + H[2, 1] ** 2
+    m22 = H[0, 2] ** 2 + H[1, 2] ** 2 + H[2, 2] ** 2
+    m01 = H[0, 0] * H[0, 1] + H[1, 0] * H[1, 1] + H[2, 0] * H[2, 1]
+    m02 = H[0, 0] * H[0, 2] + H[1, 0] * H[1, 2] + H[2, 0] * H[2, 2]
+    m12 = H[0, 1] * H[0, 2] + H[1, 1] * H[1, 2] + H[2, 1] * H[2, 2]
+    q = (m00 + m11 + m22) / 3.0
+    d0, d1, d2 = m00 - q, m11 - q, m22 - q
+    p6 = math.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * (m01 * m01 + m02 * m02 + m12 * m12)) / 6.0)
+    det_shifted = d0 * (d1 * d2 - m12 * m12) - m01 * (m01 * d2 - m12 * m02) + m02 * (m01 * m12 - d1 * m02)
+    safe = p6 if p6 > 0 else 1.0
+    phi = math.acos(min(max(det_shifted / (2.0 * safe**3), -1.0), 1.0)) / 3.0
+    e1 = q + 2.0 * p6 * math.cos(phi)
+    e3 = q + 2.0 * p6 * math.cos(phi + 2.0 * math.pi / 3.0)
+    s1 = math.sqrt(max(e1, 0.0))
+    s2 = math.sqrt(max(3.0 * q - e1 - e3, 0.0))
+    s3 = math.sqrt(max(e3, 0.0))
+    det = (H[0, 0] * (H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1]) - H[0, 1] * (H[1, 0] * H[2, 2] - H[1, 2] * H[2, 0])
+           + H[0, 2] * (H[1, 0] * H[2, 1] - H[1, 1] * H[2, 0]))
+    sign = 1.0 if det > 0 else (-1.0 if det < 0 else 0.0)
+    return math.sqrt(max(sq - 2.0 * (s1 + s2 + sign * s3), 0.0) / cnt)
+
+
+@_jit
 def kabsch_rms(A, B, w):
     """RMS misfit (C,) of the best rigid motion taking A onto B, both (C, N, 3), over the points where w
-    (C, N) is True: the optimal trace is s1 + s2 + sign(det H) s3 over the singular values of the
-    cross-covariance H, the square roots of H^T H's eigenvalues, solved in closed form (the trigonometric
-    solution of the characteristic cubic). (tracker._kabsch_rms)"""
+    (C, N) is True (`_misfit`). (tracker._kabsch_rms)"""
     n_c, n_p = A.shape[0], A.shape[1]
     out = np.empty(n_c)
     H = np.empty((3, 3))
@@ -236,27 +263,7 @@ def kabsch_rms(A, B, w):
                 sq += da * da + db * db
                 for b in range(3):
                     H[a, b] += da * (B[c, p, b] - cb[b])
-        m00 = H[0, 0] ** 2 + H[1, 0] ** 2 + H[2, 0] ** 2  # M = H^T H
-        m11 = H[0, 1] ** 2 + H[1, 1] ** 2 + H[2, 1] ** 2
-        m22 = H[0, 2] ** 2 + H[1, 2] ** 2 + H[2, 2] ** 2
-        m01 = H[0, 0] * H[0, 1] + H[1, 0] * H[1, 1] + H[2, 0] * H[2, 1]
-        m02 = H[0, 0] * H[0, 2] + H[1, 0] * H[1, 2] + H[2, 0] * H[2, 2]
-        m12 = H[0, 1] * H[0, 2] + H[1, 1] * H[1, 2] + H[2, 1] * H[2, 2]
-        q = (m00 + m11 + m22) / 3.0
-        d0, d1, d2 = m00 - q, m11 - q, m22 - q
-        p6 = math.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * (m01 * m01 + m02 * m02 + m12 * m12)) / 6.0)
-        det_shifted = d0 * (d1 * d2 - m12 * m12) - m01 * (m01 * d2 - m12 * m02) + m02 * (m01 * m12 - d1 * m02)
-        safe = p6 if p6 > 0 else 1.0
-        phi = math.acos(min(max(det_shifted / (2.0 * safe**3), -1.0), 1.0)) / 3.0
-        e1 = q + 2.0 * p6 * math.cos(phi)
-        e3 = q + 2.0 * p6 * math.cos(phi + 2.0 * math.pi / 3.0)
-        s1 = math.sqrt(max(e1, 0.0))
-        s2 = math.sqrt(max(3.0 * q - e1 - e3, 0.0))
-        s3 = math.sqrt(max(e3, 0.0))
-        det = (H[0, 0] * (H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1]) - H[0, 1] * (H[1, 0] * H[2, 2] - H[1, 2] * H[2, 0])
-               + H[0, 2] * (H[1, 0] * H[2, 1] - H[1, 1] * H[2, 0]))
-        sign = 1.0 if det > 0 else (-1.0 if det < 0 else 0.0)
-        out[c] = math.sqrt(max(sq - 2.0 * (s1 + s2 + sign * s3), 0.0) / cnt)
+        out[c] = _misfit(H, sq, cnt)
     return out
 
 
@@ -390,6 +397,54 @@ def repeats(points, radius_m):
     return np.flatnonzero(out)
 
 
+@_jit
+def relabel_candidates(layout, cur, where, provisional, lab, slot, maps, handover_m, jump_m):
+    """One segment's relabellings, scored. Its labeled markers `lab` (n,) sit at cur[lab]; relabelling c
+    gives the point of lab[j] the label slot[maps[c, j]] (slots beyond n: its unlabeled markers). Returns
+    rms (C,), how well the relabelled points fit the layout (Kabsch misfit), and blocked (C,): a label
+    would jump farther from where its marker is (`where`: now, or last known) than jump_m, or than
+    handover_m when handed to an unlabeled marker, or is handed over from a marker not on probation
+    (`provisional` <= 0: tracked all along). (the batch in tracker._relabel_by_shape)"""
+    n_c, n = maps.shape
+    rms = np.empty(n_c)
+    blocked = np.zeros(n_c, np.bool_)
+    H = np.empty((3, 3))
+    cb = np.zeros(3)
+    for j in range(n):
+        for k in range(3):
+            cb[k] += cur[lab[j], k]
+    cb /= n
+    for c in range(n_c):
+        ca = np.zeros(3)
+        spare = False
+        far = 0.0
+        for j in range(n):
+            t = slot[maps[c, j]]
+            for k in range(3):
+                ca[k] += layout[t, k]
+            if maps[c, j] >= n:
+                spare = True
+                if provisional[lab[j]] <= 0:
+                    blocked[c] = True
+            far = max(far, math.sqrt((cur[lab[j], 0] - where[t, 0]) ** 2 + (cur[lab[j], 1] - where[t, 1]) ** 2
+                                     + (cur[lab[j], 2] - where[t, 2]) ** 2))
+        if far > (handover_m if spare else jump_m):
+            blocked[c] = True
+        ca /= n
+        H[:] = 0.0
+        sq = 0.0
+        for j in range(n):
+            t = slot[maps[c, j]]
+            for a in range(3):
+                da = layout[t, a] - ca[a]
+                db = cur[lab[j], a] - cb[a]
+                sq += da * da + db * db
+                for b in range(3):
+                    H[a, b] += da * (cur[lab[j], b] - cb[b])
+        rms[c] = _misfit(H, sq, n)
+    return rms, blocked
+
+
 def warm_up() -> float:
     """Compile (or load from the cache) every kernel with the argument types the tracker passes."""
     t0 = time.perf_counter()
@@ -410,4 +465,6 @@ def warm_up() -> float:
     snapshot(snap, pos, labeled)
     world_transforms(pos[0], np.broadcast_to(np.eye(3), (m, 3, 3)).copy(), pos, np.arange(-1, m - 1))
     repeats(pos, 0.01)
+    maps = np.array([[0, 1], [1, 0], [2, 1]], np.int64)
+    relabel_candidates(pos, pos, pos, hidden, rows[:2], rows[:3], maps, 0.2, 0.3)
     return time.perf_counter() - t0

@@ -889,17 +889,22 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     spare = {r: np.flatnonzero(~labeled & slots & (seg == ks[r])) for r in flagged}
     slot_of = {r: np.concatenate([groups[r], spare[r]]) for r in flagged}
     proposals = {}
-    all_maps = [_relabellings(len(groups[r]), len(groups[r]) + len(spare[r])) for r in flagged]
-    start = np.concatenate([[0], np.cumsum([len(mp) for mp in all_maps], dtype=int)])
-    Am = np.zeros((start[-1], width, 3))
-    Bm = np.zeros_like(Am)
-    wm = np.zeros(Am.shape[:2], bool)
-    for r, maps, s0, s1 in zip(flagged, all_maps, start[:-1], start[1:]):
+    # where each marker is, or was last: a label's jump is measured from there
+    where = np.where(np.isfinite(cur), cur, st.pos_m)
+    for r in flagged:
         lab, slot = groups[r], slot_of[r]
-        Am[s0:s1, : len(lab)], Bm[s0:s1, : len(lab)], wm[s0:s1, : len(lab)] = layout[slot[maps]], cur[lab], True
-    rms_all = _kabsch_rms(Am, Bm, wm) if len(flagged) else None
-    for r, maps, s0, s1 in zip(flagged, all_maps, start[:-1], start[1:]):
-        lab, slot, rms = groups[r], slot_of[r], rms_all[s0:s1].copy()
+        maps = _relabellings(len(lab), len(slot))
+        # every relabelling of the segment scored at once (a compiled loop, `kernels.relabel_candidates`):
+        # its fit to the layout, and whether it is blocked. A relabelling trades labels between neighbours
+        # (a wrist triad, a foot's markers): labels that would jump across the body tell of a layout
+        # calibrated wrong (a seed lying still), not of a permutation. A permutation moves a label at most
+        # across its segment (SHAPE_MAX_JUMP_M: a foot's heel to toe; at 0.2 m a tennis player's left foot
+        # stayed permuted for 8 s); a label handed to an unlabeled marker, whose place is only known from
+        # where it was last, less far (SHAPE_MAX_HANDOVER_M: at 0.3 m a thigh marker calibrated onto a
+        # hanging forearm was handed to the finger marker, 85_12 at L3), and only from a re-acquisition
+        # still on probation (a marker tracked all along is not suspected of sitting on another's point).
+        rms, blocked = kernels.relabel_candidates(layout, cur, where, st.provisional, lab, slot, maps,
+                                                  SHAPE_MAX_HANDOVER_M, SHAPE_MAX_JUMP_M)
         fits[r] = rms.min() < SHAPE_GOOD_RMS_M
         # a relabelling the layout itself is symmetric under (a square cluster plate turned by 90 degrees,
         # two markers equidistant from the rest) cannot be told from the identity: never taken
@@ -910,19 +915,6 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
                 st.shape_symmetry.clear()
             ones = np.ones(maps.shape, bool)
             symmetric_rms = st.shape_symmetry[key] = _kabsch_rms(layout[slot[maps]], np.broadcast_to(layout[lab], maps.shape + (3,)), ones)
-        # a relabelling trades labels between neighbours (a wrist triad, a foot's markers): labels that would
-        # jump across the body tell of a layout calibrated wrong (a seed lying still), not of a permutation.
-        # A permutation moves a label at most across its segment (a foot's heel to toe: at 0.2 m a tennis
-        # player's left foot stayed permuted for 8 s); a label handed to an unlabeled marker, whose place is
-        # only known from where it was last, less far (at 0.3 m a thigh marker calibrated onto a hanging
-        # forearm was handed to the finger marker: 85_12 at L3)
-        where = np.where(np.isfinite(cur[slot]), cur[slot], st.pos_m[slot])
-        jump = _norm(cur[lab][:, None] - where[None])[np.arange(len(lab)), maps].max(1)
-        # a label goes to an unlabeled marker only from a re-acquisition still on probation (a marker
-        # tracked all along is not suspected of sitting on another's point)
-        to_spare = maps >= len(lab)  # (C, n): the label of point j goes to an unlabeled marker
-        handed = (to_spare & (st.provisional[lab] <= 0)[None, :]).any(1)
-        limit = np.where(to_spare.any(1), SHAPE_MAX_HANDOVER_M, SHAPE_MAX_JUMP_M)
         # a relabelling that moves the layout's markers less than SHAPE_DISTINCT_M is taken only on clear
         # evidence: the labels misfit the layout by about that move, and the relabelled ones fit it as tightly
         # as in calibration (a toe label on the fifth metatarsal's point, 11 mm apart in the foot's layout:
@@ -932,7 +924,7 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
             can_clear[r] & (symmetric_rms >= SHAPE_CLEAR_MIN_M) & (rms0[r] >= SHAPE_CLEAR_SHARE * symmetric_rms)
             & (rms <= max(SHAPE_CLEAR_FIT_M, 2.0 * typical[r]))
         )
-        rms = np.where(((symmetric_rms < SHAPE_DISTINCT_M) & ~clear) | (jump > limit) | handed, np.inf, rms)
+        rms = np.where(((symmetric_rms < SHAPE_DISTINCT_M) & ~clear) | blocked, np.inf, rms)
         rms[0] = np.inf
         best = int(np.argmin(rms))
         # (one taken on clear evidence must also stand out: two that fit alike leave it open which)

@@ -155,8 +155,31 @@ def test_repeats_are_the_later_point_of_each_close_pair():
     assert kernels.repeats(points, 0.001).tolist() == []
 
 
+def test_relabel_candidates_score_every_relabelling_as_the_batched_numpy_did():
+    rng = np.random.default_rng(6)
+    m = 9
+    layout = rng.normal(0.0, 0.05, (m, 3))
+    R = Rotation.random(random_state=7).as_matrix()
+    cur = layout @ R.T + 1.0 + rng.normal(0.0, 0.002, (m, 3))
+    cur[[7, 8]] = np.nan  # unlabeled: their last positions are in `pos`
+    pos = layout @ R.T + 1.0 + rng.normal(0.0, 0.2, (m, 3))
+    provisional = np.array([0, 5, 0, 0, 0, 0, 0, 0, 0])
+    lab, slot = np.array([0, 1, 2, 3]), np.array([0, 1, 2, 3, 7, 8])
+    maps = np.array(list(__import__("itertools").permutations(range(6), 4)))
+    where = np.where(np.isfinite(cur), cur, pos)
+    rms, blocked = kernels.relabel_candidates(layout, cur, where, provisional, lab, slot, maps, 0.2, 0.3)
+    A, B = layout[slot[maps]], np.broadcast_to(cur[lab], maps.shape + (3,)).copy()
+    np.testing.assert_allclose(rms, kernels.kabsch_rms(A, B, np.ones(maps.shape, bool)), atol=1e-12)
+    assert rms[0] < 0.004 and rms[1:].min() > rms[0]  # the identity fits; no permutation does as well
+    jump = np.linalg.norm(cur[lab][:, None] - where[slot][None], axis=2)[np.arange(4), maps].max(1)
+    to_spare = maps >= 4
+    want = (jump > np.where(to_spare.any(1), 0.2, 0.3)) | (to_spare & (provisional[lab] <= 0)).any(1)
+    np.testing.assert_array_equal(blocked, want)
+    assert not want.all() and want.any()
+
+
 KERNELS = ("rigid_predict", "distance_misfit", "update_distances", "kabsch_rms", "gated_pairs", "commit_motion",
-           "snapshot", "world_transforms", "repeats")
+           "snapshot", "world_transforms", "repeats", "relabel_candidates")
 
 
 _COMPILE_ONCE = """
