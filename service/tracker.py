@@ -629,11 +629,17 @@ def _rival_fits(model: SubjectModel, pw: np.ndarray, points: np.ndarray, assignm
         idx = np.flatnonzero(seg == k2)
         if k2 == k or len(idx) < len(mk):
             continue
-        for perm in itertools.permutations(idx, len(mk)):
-            rms2, joint2 = _joint_residual(off[list(perm)], pw[k2], pts)
-            if rms2 < max(SEARCH_INLIER_M, 1.5 * rms) and joint2 < joint + RIVAL_JOINT_MARGIN_M:
-                return True
+        # every labelling of the points from segment k2's markers at once (a compiled loop)
+        rms2, joint2 = kernels.segment_fits(off, pw[k2], pts, idx[_arrangements(len(idx), len(mk))])
+        if np.any((rms2 < max(SEARCH_INLIER_M, 1.5 * rms)) & (joint2 < joint + RIVAL_JOINT_MARGIN_M)):
+            return True
     return False
+
+
+@functools.lru_cache(maxsize=None)
+def _arrangements(n: int, k: int) -> np.ndarray:
+    """(C, k) every ordered choice of k of n indices (itertools.permutations), as an array."""
+    return np.array(list(itertools.permutations(range(n), k)), dtype=np.int64).reshape(-1, k)
 
 
 def _placed(off: np.ndarray, los: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarray,

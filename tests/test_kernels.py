@@ -178,8 +178,27 @@ def test_relabel_candidates_score_every_relabelling_as_the_batched_numpy_did():
     assert not want.all() and want.any()
 
 
+def test_segment_fits_register_every_labelling_and_place_the_joint():
+    rng = np.random.default_rng(9)
+    off = rng.normal(0.0, 0.06, (6, 3))  # a segment of six markers; its joint at the offsets' origin
+    R = Rotation.random(random_state=10).as_matrix()
+    joint = np.array([0.3, 0.1, 1.2])
+    pts = off[[4, 1, 2]] @ R.T + joint  # markers 4, 1, 2 seen
+    perms = np.array(list(__import__("itertools").permutations(range(6), 3)))
+    rms, dist = kernels.segment_fits(off, joint, pts, perms)
+    best = int(np.argmin(rms))
+    # (an exact fit reads ~1e-5 m: the closed-form misfit is a difference of sums of squares)
+    assert perms[best].tolist() == [4, 1, 2] and rms[best] < 1e-4 and dist[best] < 1e-9
+    for c in range(0, len(perms), 17):  # against a Kabsch by scipy
+        a = off[perms[c]]
+        rot, _ = Rotation.align_vectors(pts - pts.mean(0), a - a.mean(0))
+        t = pts.mean(0) - rot.apply(a.mean(0))
+        np.testing.assert_allclose(rms[c], np.sqrt(np.mean(np.sum((rot.apply(a) + t - pts) ** 2, 1))), atol=5e-5)
+        np.testing.assert_allclose(dist[c], np.linalg.norm(t - joint), atol=1e-9)
+
+
 KERNELS = ("rigid_predict", "distance_misfit", "update_distances", "kabsch_rms", "gated_pairs", "commit_motion",
-           "snapshot", "world_transforms", "repeats", "relabel_candidates")
+           "snapshot", "world_transforms", "repeats", "relabel_candidates", "segment_fits")
 
 
 _COMPILE_ONCE = """
