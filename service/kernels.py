@@ -148,6 +148,37 @@ def _rotation_of(H):
 
 
 @_jit
+def rigid_motion(a, b):
+    """The rotation R (3, 3) and translation t (3,) that best take points a (N, 3) onto b (N, 3), b ~ R a + t
+    (Kabsch; `_rotation_of`). (calibration.rigid_motion, for the tracker's searches: ~2 us a call against
+    ~45 us, and a lost subject's search makes hundreds)"""
+    n = a.shape[0]
+    R = np.eye(3)
+    t = np.zeros(3)
+    if n == 0:
+        return R, t
+    ca = np.zeros(3)
+    cb = np.zeros(3)
+    for j in range(n):
+        for k in range(3):
+            ca[k] += a[j, k]
+            cb[k] += b[j, k]
+    ca /= n
+    cb /= n
+    H = np.zeros((3, 3))
+    for j in range(n):
+        for x in range(3):
+            for y in range(3):
+                H[x, y] += (a[j, x] - ca[x]) * (b[j, y] - cb[y])
+    R = _rotation_of(H)
+    for x in range(3):
+        t[x] = cb[x]
+        for y in range(3):
+            t[x] -= R[x, y] * ca[y]
+    return R, t
+
+
+@_jit
 def distance_misfit(partners, dist_n, mean, var, cur, labeled, rows):
     """The median z = |d - mean| / (sigma + 3 mm) of each marker in `rows` over (up to) its 3 partners
     with the smallest sigma among those labeled now and sampled at least 10 times; NaN with fewer than
@@ -458,10 +489,11 @@ def relabel_candidates(layout, cur, where, provisional, lab, slot, maps, handove
 
 
 @_jit
-def segment_fits(off, joint, pts, perms):
+def segment_fits(off, joint, pts, perms, max_rms):
     """A segment's markers registered onto n points under each labelling: marker perms[c, j] (offset
     off[.], (M, 3)) on point pts[j] (n, 3). Returns rms (C,), the Kabsch misfit of each, and joint (C,), how
-    far that registration puts the segment's origin (the offsets' zero) from `joint` (3,).
+    far that registration puts the segment's origin (the offsets' zero) from `joint` (3,); inf for the
+    labellings misfitting by max_rms or more (their rotation is never formed).
     (tracker._rival_fits, which made one numpy Kabsch per labelling: 1680 of them for a torso's eight
     markers against four points, 0.15 s in one frame of eight subjects.)"""
     n_c, n = perms.shape
@@ -488,6 +520,9 @@ def segment_fits(off, joint, pts, perms):
                 for b in range(3):
                     H[a, b] += da * (pts[j, b] - cb[b])
         rms[c] = _misfit(H, sq, n)
+        if rms[c] >= max_rms:
+            dist[c] = np.inf
+            continue
         R = _rotation_of(H)
         d2 = 0.0
         for a in range(3):  # the origin goes to t = cb - R ca
@@ -521,5 +556,6 @@ def warm_up() -> float:
     repeats(pos, 0.01)
     maps = np.array([[0, 1], [1, 0], [2, 1]], np.int64)
     relabel_candidates(pos, pos, pos, hidden, rows[:2], rows[:3], maps, 0.2, 0.3)
-    segment_fits(pos, pos[0], pos[:2], maps)
+    segment_fits(pos, pos[0], pos[:2], maps, 1.0)
+    rigid_motion(pos, pos)
     return time.perf_counter() - t0

@@ -57,7 +57,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from protocol.skeleton import N_SEGMENTS, PARENTS
-from service.calibration import rigid_motion, world_transforms
+from service.calibration import world_transforms
 from service import kernels
 from service.config import EngineConfig
 
@@ -521,6 +521,11 @@ def _relocate(st: TrackState, points: np.ndarray, cand: np.ndarray, gate_m: floa
     return out
 
 
+def rigid_motion(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`calibration.rigid_motion`, compiled (`kernels.rigid_motion`): the searches make hundreds a frame."""
+    return kernels.rigid_motion(np.require(a, np.float64, "CW"), np.require(b, np.float64, "CW"))
+
+
 def _joints_m(model: SubjectModel, st: TrackState) -> np.ndarray:
     """World positions (14, 3) of the segment origins in the current pose. Kept until the pose changes (a
     fit is collected: new arrays, never changed in place), since the searches ask several times a frame."""
@@ -630,8 +635,9 @@ def _rival_fits(model: SubjectModel, pw: np.ndarray, points: np.ndarray, assignm
         if k2 == k or len(idx) < len(mk):
             continue
         # every labelling of the points from segment k2's markers at once (a compiled loop)
-        rms2, joint2 = kernels.segment_fits(off, pw[k2], pts, idx[_arrangements(len(idx), len(mk))])
-        if np.any((rms2 < max(SEARCH_INLIER_M, 1.5 * rms)) & (joint2 < joint + RIVAL_JOINT_MARGIN_M)):
+        limit = max(SEARCH_INLIER_M, 1.5 * rms)
+        rms2, joint2 = kernels.segment_fits(off, pw[k2], pts, idx[_arrangements(len(idx), len(mk))], limit)
+        if np.any((rms2 < limit) & (joint2 < joint + RIVAL_JOINT_MARGIN_M)):
             return True
     return False
 

@@ -178,6 +178,21 @@ def test_relabel_candidates_score_every_relabelling_as_the_batched_numpy_did():
     assert not want.all() and want.any()
 
 
+def test_rigid_motion_matches_scipy_and_keeps_a_rotation_for_mirrored_points():
+    rng = np.random.default_rng(8)
+    for case in range(20):
+        a = rng.normal(0.0, 0.1, (5, 3))
+        R = Rotation.random(random_state=case).as_matrix()
+        b = a @ R.T + [0.5, -1.0, 2.0] + rng.normal(0.0, 0.003, (5, 3))
+        if case % 4 == 0:
+            b = b * [1.0, 1.0, -1.0]  # mirrored: the best proper rotation, never a reflection
+        got_R, got_t = kernels.rigid_motion(a, b)
+        want, _ = Rotation.align_vectors(b - b.mean(0), a - a.mean(0))
+        np.testing.assert_allclose(got_R, want.as_matrix(), atol=1e-9)
+        np.testing.assert_allclose(np.linalg.det(got_R), 1.0, atol=1e-12)
+        np.testing.assert_allclose(got_t, b.mean(0) - got_R @ a.mean(0), atol=1e-12)
+
+
 def test_segment_fits_register_every_labelling_and_place_the_joint():
     rng = np.random.default_rng(9)
     off = rng.normal(0.0, 0.06, (6, 3))  # a segment of six markers; its joint at the offsets' origin
@@ -185,7 +200,7 @@ def test_segment_fits_register_every_labelling_and_place_the_joint():
     joint = np.array([0.3, 0.1, 1.2])
     pts = off[[4, 1, 2]] @ R.T + joint  # markers 4, 1, 2 seen
     perms = np.array(list(__import__("itertools").permutations(range(6), 3)))
-    rms, dist = kernels.segment_fits(off, joint, pts, perms)
+    rms, dist = kernels.segment_fits(off, joint, pts, perms, 1.0)
     best = int(np.argmin(rms))
     # (an exact fit reads ~1e-5 m: the closed-form misfit is a difference of sums of squares)
     assert perms[best].tolist() == [4, 1, 2] and rms[best] < 1e-4 and dist[best] < 1e-9
@@ -195,10 +210,12 @@ def test_segment_fits_register_every_labelling_and_place_the_joint():
         t = pts.mean(0) - rot.apply(a.mean(0))
         np.testing.assert_allclose(rms[c], np.sqrt(np.mean(np.sum((rot.apply(a) + t - pts) ** 2, 1))), atol=5e-5)
         np.testing.assert_allclose(dist[c], np.linalg.norm(t - joint), atol=1e-9)
+    _, dist = kernels.segment_fits(off, joint, pts, perms, 0.005)  # the misfitting ones skipped
+    assert np.isfinite(dist).sum() < len(perms) / 10 and dist[best] < 1e-9
 
 
 KERNELS = ("rigid_predict", "distance_misfit", "update_distances", "kabsch_rms", "gated_pairs", "commit_motion",
-           "snapshot", "world_transforms", "repeats", "relabel_candidates", "segment_fits")
+           "snapshot", "world_transforms", "repeats", "relabel_candidates", "segment_fits", "rigid_motion")
 
 
 _COMPILE_ONCE = """
