@@ -43,6 +43,9 @@
 Rigid partners are learned online: running statistics of every pairwise marker distance (only over
 labeled frames) rank, for each marker, the partners whose distance varies least. They are kept with two
 memories, ~100 frames and ~1000 (SLOW_ALPHA): the long one still sees a swap the short one has absorbed.
+
+The loops over markers, partners and relabellings are compiled (`service.kernels`, numba); this module
+keeps the decisions, the kernels the arithmetic.
 """
 
 from __future__ import annotations
@@ -1012,8 +1015,8 @@ def step(
     """Label one frame for one subject. `points` (N, 3) finite; `free` (N,) marks points no other subject
     claimed. Mutates and returns `st` (the registry owns it; callers never share a state). With `defer`,
     the labels are returned before the layout check (8.), the state update and the solve launch: `finish`
-    does those (the daemon publishes the labels first; profiled on 135_02 at L2, they are ~0.4 ms of a
-    frame's ~1.8 ms on average, ~1.3 ms more on a layout-check frame)."""
+    does those (the daemon publishes the labels first; timed on 135_02 at L2, they are ~0.13 ms of a
+    frame's ~0.4 ms on average, ~0.25 ms more on a layout-check frame)."""
     collect(model, st)
     m = model.n_markers
     dt = min(max((t_ns - st.last_t_ns) * 1e-9, 1e-4), 0.5) if st.frames or st.last_t_ns else 1.0 / 120
@@ -1217,7 +1220,7 @@ def step(
         # 8. Labels permuted within a segment (a wrist triad after a fast pass or a re-acquisition) are put
         #    back in the order the segment's marker layout says. Not before publishing: a relabelling waits
         #    for SHAPE_CONFIRM checks anyway (four frames apart), so one frame more costs little, and these
-        #    checks are the costliest step of a frame (~1.3 ms on every SHAPE_EVERY_FRAMES-th). The state
+        #    checks are the costliest step of a frame (~0.25 ms on every SHAPE_EVERY_FRAMES-th). The state
         #    takes the new labels; this frame's published ones stay as they were. Points claimed meanwhile
         #    by subjects stepped after this one (`free` is the engine's, updated in place) are not free.
         idx, now = point_index.copy(), cur.copy()
