@@ -67,19 +67,26 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _kernel_cache(cache_dir: str) -> None:
-    """Keep the tracker's compiled loops (numba) beside JAX's compilations, in cache_dir/numba, so one
-    directory holds a warm start and an empty one measures a cold start. Before numba loads: it reads
+def _prepare_caches(cache_dir: str) -> None:
+    """Create the compilation cache directory (a bad one is a usage error, not a traceback from deep in
+    JAX) and keep the tracker's compiled loops (numba) beside JAX's compilations, in cache_dir/numba, so
+    one directory holds a warm start and an empty one measures a cold start. Before numba loads: it reads
     NUMBA_CACHE_DIR once. (With no cache directory numba keeps its own default, beside the source.)"""
-    if cache_dir:
-        os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(cache_dir).expanduser() / "numba"))
+    if not cache_dir:
+        return
+    path = Path(cache_dir).expanduser() / "numba"
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise UsageError(f"mocap-service: cannot use cache directory {cache_dir}: {e.strerror or e}") from None
+    os.environ.setdefault("NUMBA_CACHE_DIR", str(path))
 
 
 def _serve(args) -> int:
     config = load_config(args.config, frames_endpoint=args.frames, publish_endpoint=args.publish,
                          control_endpoint=args.control, state_dir=args.state_dir, cache_dir=args.cache_dir,
                          busy_poll_s=args.busy_poll_s, engine_max_skip_frames=args.max_skip_frames)
-    _kernel_cache(config.cache_dir)
+    _prepare_caches(config.cache_dir)
     from service.daemon import Daemon, DaemonError  # after the config: a bad flag must not wait for jax
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
@@ -107,7 +114,7 @@ def _label(args) -> int:
         raise UsageError(f"mocap-service: {e}") from None
     except OSError as e:
         raise UsageError(f"mocap-service: cannot read {args.input}: {e.strerror or e}") from None
-    _kernel_cache(config.cache_dir)
+    _prepare_caches(config.cache_dir)
     from service.daemon import enable_compilation_cache  # imported late: jax costs seconds, errors do not
     from service.offline import label_recording
 

@@ -132,6 +132,14 @@ def test_bad_flags_get_one_line(args, words):
     assert_one_line_error(cli(*args, timeout=60), *words)
 
 
+@pytest.mark.parametrize("command", ["serve", "label"])
+def test_an_unusable_cache_directory_gets_one_line(tmp_path, small_c3d, command):
+    blocker = tmp_path / "file"
+    blocker.write_text("")  # a file where the cache directory's parent should be
+    args = ["label", small_c3d[0], "-o", tmp_path / "out.c3d"] if command == "label" else ["serve"]
+    assert_one_line_error(cli(*args, "--cache-dir", blocker / "cache", timeout=60), "cache directory", "cache")
+
+
 def test_bad_config_file(tmp_path):
     assert_one_line_error(cli("serve", "--config", tmp_path / "none.toml"), "does not exist")
     bad = tmp_path / "bad.toml"
