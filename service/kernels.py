@@ -36,6 +36,46 @@ def _dist2(P, i, Q, j):
 
 
 @_jit
+def track_predictions(pos, vel, acc, labeled, dt, use_acc, gate_m):
+    """Where each marker labeled last frame should be now (constant velocity, plus the acceleration when
+    `use_acc`), its speed, and its tracking gate (gate_m + 35 % of its step; 0 for the others): returns
+    pred (M, 3), speed (M,), gates (M,). (tracker.step, 1.)"""
+    m = pos.shape[0]
+    pred = np.empty((m, 3))
+    speed = np.empty(m)
+    gates = np.zeros(m)
+    for i in range(m):
+        v2 = 0.0
+        for c in range(3):
+            pred[i, c] = pos[i, c] + vel[i, c] * dt
+            if use_acc:
+                pred[i, c] += 0.5 * dt * dt * acc[i, c]
+            v2 += vel[i, c] * vel[i, c]
+        speed[i] = math.sqrt(v2)
+        if labeled[i]:
+            gates[i] = gate_m + 0.35 * speed[i] * dt
+    return pred, speed, gates
+
+
+@_jit
+def track_labels(points, rows, cols, contested, pred, speed, dt, m, check_m):
+    """The tracked labels (marker rows[k] on point cols[k]) as point_index (M,) (-1: none) and positions
+    cur (M, 3) (NaN: none), and which need the rigid check: a label that was a choice (`contested`), or
+    whose point is more than check_m + 10 % of the marker's step from where it was heading (a ghost caught
+    in the gate as the marker vanished). (tracker.step, 1.)"""
+    point_index = np.full(m, -1)
+    cur = np.full((m, 3), np.nan)
+    suspicious = np.zeros(m, np.bool_)
+    for k in range(rows.shape[0]):
+        i, j = rows[k], cols[k]
+        point_index[i] = j
+        for c in range(3):
+            cur[i, c] = points[j, c]
+        suspicious[i] = contested[k] or math.sqrt(_dist2(points, j, pred, i)) > check_m + 0.1 * speed[i] * dt
+    return point_index, cur, suspicious
+
+
+@_jit
 def rigid_predict(partners, snap, dist_var, pos, labeled, which):
     """For each marker i where `which[i]`, carry its partners' positions when it was last seen
     (`snap[i, j]`) onto their positions now (`pos`, labeled ones) by the weighted best rigid motion (Kabsch, weights 1 /
@@ -549,6 +589,8 @@ def warm_up() -> float:
     update_distances(stats.copy(), stats.copy(), stats.copy(), stats.copy(), stats.copy(), pos, labeled, 0.02, 0.002)
     kabsch_rms(snap, snap, np.ones((m, k + 1), bool))
     gated_pairs(pos, np.ones(m), pos, labeled)
+    pred, speed, _ = track_predictions(pos, pos, pos, labeled, 0.01, True, 0.03)
+    track_labels(pos, rows, rows, labeled, pred, speed, 0.01, m, 0.006)
     hidden = np.zeros(m, np.int64)
     commit_motion(pos, pos, pos, labeled, hidden, labeled, pos, labeled, pos, 0.01, 15.0, 500.0)
     snapshot(snap, pos, labeled)

@@ -1020,28 +1020,21 @@ def step(
     collect(model, st)
     m = model.n_markers
     dt = min(max((t_ns - st.last_t_ns) * 1e-9, 1e-4), 0.5) if st.frames or st.last_t_ns else 1.0 / 120
-    point_index = np.full(m, -1)
     taken = ~free.copy()
     if st.last_t_ns and (t_ns - st.last_t_ns) * 1e-9 > LOST_AFTER_GAP_S:
         st.labeled[:] = False  # the frames paused: no track is current, the subject is looked for (step 4)
 
-    # 1. NNT: markers labeled last frame, predicted from their velocity and acceleration.
-    pred_track = st.pos_m + st.vel_m_s * dt
-    if dt < 1.5 * st.acc_dt_s:  # the acceleration holds for a frame step, not across dropped frames
-        pred_track += 0.5 * dt * dt * st.acc_m_s2
-    speed = _norm(st.vel_m_s)
-    gates = np.where(st.labeled, config.nnt_gate_m + 0.35 * speed * dt, 0.0)
+    # 1. NNT: markers labeled last frame, predicted from their velocity and acceleration (which holds for
+    #    a frame step, not across dropped frames), matched inside gates that widen with their speed.
+    pred_track, speed, gates = kernels.track_predictions(st.pos_m, st.vel_m_s, st.acc_m_s2, st.labeled, dt,
+                                                         dt < 1.5 * st.acc_dt_s, config.nnt_gate_m)
     rows, cols, contested = _assign(pred_track, gates, points, ~taken)
-    point_index[rows] = cols
     taken[cols] = True
     # a label needs the rigid check when it was a choice, or when its point is not where the marker was
     # heading (a ghost caught in the gate as the marker vanished); a full check every CHECK_EVERY frames
-    resid = _norm(points[cols] - pred_track[rows])
-    suspicious = np.zeros(m, bool)
-    suspicious[rows] = contested | (resid > CHECK_RESIDUAL_M + 0.1 * speed[rows] * dt)
-
+    point_index, cur, suspicious = kernels.track_labels(points, rows, cols, contested, pred_track, speed, dt, m,
+                                                        CHECK_RESIDUAL_M)
     labeled = point_index >= 0
-    cur = _gather(points, point_index)
 
     # 2. Predict every marker from its rigid partners; a tracked label its partners disagree with (a swap
     #    of two close markers, a ghost caught while the marker hid) is withdrawn and re-assigned below.

@@ -106,6 +106,25 @@ def test_gated_pairs_finds_the_pairs_in_the_gates_and_says_when_there_is_a_choic
     assert n_row.tolist() == [2, 1] and n_col.tolist() == [1, 1, 1]
 
 
+def test_track_predictions_and_labels_follow_velocity_acceleration_and_the_gate():
+    pos = np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])
+    vel = np.array([[1.0, 0, 0], [0, 2.0, 0], [0, 0, 0]])
+    acc = np.array([[100.0, 0, 0], [0, 0, 0], [0, 0, 0]])
+    labeled = np.array([True, True, False])
+    pred, speed, gates = kernels.track_predictions(pos, vel, acc, labeled, 0.01, True, 0.03)
+    np.testing.assert_allclose(pred, [[0.015, 0, 0], [1.0, 0.02, 0], [2.0, 0, 0]])
+    np.testing.assert_allclose(speed, [1.0, 2.0, 0.0])
+    np.testing.assert_allclose(gates, [0.03 + 0.35 * 0.01, 0.03 + 0.35 * 0.02, 0.0])  # none for a hidden marker
+    pred_no_acc, _, _ = kernels.track_predictions(pos, vel, acc, labeled, 0.01, False, 0.03)
+    np.testing.assert_allclose(pred_no_acc[0], [0.01, 0, 0])
+    points = np.array([[1.0, 0.05, 0], [0.015, 0.0, 0]])  # marker 1's point 3 cm off its heading
+    idx, cur, suspicious = kernels.track_labels(points, np.array([0, 1]), np.array([1, 0]), np.array([False, False]),
+                                                pred, speed, 0.01, 3, 0.006)
+    assert idx.tolist() == [1, 0, -1] and np.isnan(cur[2]).all()
+    np.testing.assert_array_equal(cur[:2], points[[1, 0]])
+    assert suspicious.tolist() == [False, True, False]
+
+
 def test_commit_motion_measures_velocity_on_two_frames_and_keeps_it_on_reacquisition():
     pos = np.zeros((3, 3))
     vel = np.array([[1.0, 0, 0], [0, 2.0, 0], [0, 0, 3.0]])
@@ -214,7 +233,7 @@ def test_segment_fits_register_every_labelling_and_place_the_joint():
     assert np.isfinite(dist).sum() < len(perms) / 10 and dist[best] < 1e-9
 
 
-KERNELS = ("rigid_predict", "distance_misfit", "update_distances", "kabsch_rms", "gated_pairs", "commit_motion",
+KERNELS = ("track_predictions", "track_labels", "rigid_predict", "distance_misfit", "update_distances", "kabsch_rms", "gated_pairs", "commit_motion",
            "snapshot", "world_transforms", "repeats", "relabel_candidates", "segment_fits", "rigid_motion")
 
 
