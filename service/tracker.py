@@ -57,10 +57,8 @@ import itertools
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
-from scipy.spatial.distance import cdist
 
 from protocol.skeleton import N_SEGMENTS, PARENTS
-from service.calibration import world_transforms
 from service import kernels
 from service.config import EngineConfig
 
