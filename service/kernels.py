@@ -78,9 +78,10 @@ def track_labels(points, rows, cols, contested, pred, speed, dt, m, check_m):
 @_jit
 def rigid_predict(partners, snap, dist_var, pos, labeled, which):
     """For each marker i where `which[i]`, carry its partners' positions when it was last seen
-    (`snap[i, j]`) onto their positions now (`pos`, labeled ones) by the weighted best rigid motion (Kabsch, weights 1 /
-    (sigma + 3 mm)^2), and the marker with them. Returns pred (M, 3) and spread (M,), the partners'
-    weighted RMS misfit; NaN where fewer than 3 partners are usable. (tracker.rigid_predictions)"""
+    (`snap[i, j]`) onto their positions now (`pos`, labeled ones) by the weighted best rigid motion
+    (Kabsch, weights 1 / (sigma + 3 mm)^2), and the marker with them. Returns pred (M, 3) and spread (M,),
+    the partners' weighted RMS misfit; NaN where fewer than 3 partners are usable.
+    (tracker.rigid_predictions)"""
     m = pos.shape[0]
     n_part = partners.shape[1]
     pred = np.full((m, 3), np.nan)
