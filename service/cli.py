@@ -20,6 +20,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 from service.config import ConfigError, load_config  # noqa: E402 - after the thread settings
 
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+CACHE_HELP = 'compilation caches: JAX\'s, and the tracker kernels\' under numba/ ("" disables JAX\'s)'
 
 
 class UsageError(Exception):
@@ -44,7 +45,7 @@ def _parser() -> argparse.ArgumentParser:
     serve.add_argument("--control", metavar="EP", help="endpoint to bind for commands (REP)")
     serve.add_argument("--config", metavar="FILE", help="TOML configuration file")
     serve.add_argument("--state-dir", metavar="DIR", help="where subject calibrations are kept")
-    serve.add_argument("--cache-dir", metavar="DIR", help='compilation caches: JAX\'s, and the tracker kernels\' under numba/ ("" disables JAX\'s)')
+    serve.add_argument("--cache-dir", metavar="DIR", help=CACHE_HELP)
     serve.add_argument("--max-skip-frames", metavar="K", type=int,
                        help="frames the skeleton solve may be skipped in a row (0 = solve every frame)")
     serve.add_argument("--busy-poll", metavar="S", type=float, dest="busy_poll_s",
@@ -61,7 +62,7 @@ def _parser() -> argparse.ArgumentParser:
     label.add_argument("--max-skip-frames", metavar="K", type=int,
                        help="frames the skeleton solve may be skipped in a row (0 = solve every frame)")
     label.add_argument("--config", metavar="FILE", help="TOML configuration file")
-    label.add_argument("--cache-dir", metavar="DIR", help='compilation caches: JAX\'s, and the tracker kernels\' under numba/ ("" disables JAX\'s)')
+    label.add_argument("--cache-dir", metavar="DIR", help=CACHE_HELP)
     label.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     label.add_argument("--log-level", default="WARNING", type=str.upper, choices=LOG_LEVELS)
     return parser

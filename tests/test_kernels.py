@@ -233,8 +233,9 @@ def test_segment_fits_register_every_labelling_and_place_the_joint():
     assert np.isfinite(dist).sum() < len(perms) / 10 and dist[best] < 1e-9
 
 
-KERNELS = ("track_predictions", "track_labels", "rigid_predict", "distance_misfit", "update_distances", "kabsch_rms", "gated_pairs", "commit_motion",
-           "snapshot", "world_transforms", "repeats", "relabel_candidates", "segment_fits", "rigid_motion")
+KERNELS = ("track_predictions", "track_labels", "rigid_predict", "distance_misfit", "update_distances",
+           "kabsch_rms", "gated_pairs", "commit_motion", "snapshot", "world_transforms", "repeats",
+           "relabel_candidates", "segment_fits", "rigid_motion")
 
 
 _COMPILE_ONCE = """
