@@ -148,7 +148,7 @@ SLOW_ALPHA = 0.002
 MAX_SPEED_M_S = 15.0  # markers never move faster; caps velocities estimated from bad predictions
 MAX_ACC_M_S2 = 300.0  # ... nor accelerate faster (a tennis serve's hand reaches ~200 m/s^2)
 SKELETON_VELOCITY_GAP_S = 0.05  # two fits at most this far apart give the skeleton markers' velocity
-_BIG = 1e9
+_BIG = kernels.BIG  # a cost or score that must never be chosen
 _PARENTS = np.asarray(PARENTS, np.int64)
 
 
