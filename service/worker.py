@@ -168,8 +168,11 @@ def _serve(result_fd: int, cache_dir: str) -> None:
         except Exception as e:  # noqa: BLE001 - a failed job is reported to its caller, the worker lives on
             out = (False, f"{type(e).__name__}: {e}")
         payload = pickle.dumps(out, protocol=pickle.HIGHEST_PROTOCOL)
-        results.write(_HEADER.pack(job, len(payload)) + payload)
-        results.flush()
+        try:
+            results.write(_HEADER.pack(job, len(payload)) + payload)
+            results.flush()
+        except BrokenPipeError:
+            return  # the parent went away mid-job: nobody is left to answer
 
 
 if __name__ == "__main__":

@@ -72,3 +72,28 @@ def test_cpu_time_of_the_helper_is_reported(helper):
     assert np.isnan(helper.cpu_s())  # none running yet
     helper.submit(_pid).result(timeout=60)
     assert helper.cpu_s() >= 0.0
+
+
+def test_a_helper_whose_parent_stopped_reading_exits_quietly():
+    """A parent that dies mid-job closes the result pipe: the helper's answer meets a broken pipe. It exits
+    with status 0 and prints nothing (it used to print a BrokenPipeError traceback)."""
+    import pickle
+    import struct
+    import subprocess
+    import sys
+
+    from service import worker
+
+    read, write = os.pipe()
+    child = subprocess.Popen(
+        [sys.executable, "-m", "service.worker", str(write)],
+        stdin=subprocess.PIPE, stderr=subprocess.PIPE, pass_fds=(write,), cwd=worker._REPO,
+    )
+    os.close(write)
+    os.close(read)
+    payload = pickle.dumps((time.sleep, (0.2,)))
+    child.stdin.write(struct.pack("<QQ", 0, len(payload)) + payload)
+    child.stdin.close()
+    with child.stderr:
+        assert child.wait(timeout=60) == 0
+        assert child.stderr.read() == b""
