@@ -125,7 +125,9 @@ SHAPE_CLEAR_MIN_LABELS = 3
 SHAPE_CLEAR_LAYOUT_M = 0.0025
 SHAPE_CLEAR_SHARE = 0.6
 SHAPE_CLEAR_FIT_M = 0.002
-COMPLETE_JOINT_RMS_M = 0.02  # ... (`_complete_by_free_point`) whose markers and joint fit the offsets this well [m] RMS
+COMPLETE_FIT_FACTOR = 3.0  # (`_complete_by_free_point`) a labeling whose three points fit the layout within this times its markers' residual ...
+COMPLETE_JOINT_RMS_M = 0.02  # ... and whose markers and joint fit the offsets this well [m] RMS ...
+COMPLETE_PAIR_MISFIT_M = 0.01  # ... is taken unrivalled when the labeled pair's distance misfits the layout's by this much [m]
 SHAPE_CONFIRM = 2  # ... when the same relabelling wins this many checks running
 SHAPE_FIT_ALPHA = SHAPE_EVERY_FRAMES / 200  # the share of checks (over ~200 frames) on which a segment's labels fit its layout, a running mean ...
 SHAPE_TRUSTED_SHARE = 0.3  # ... at least this, over more than SHAPE_MIN_CHECKS checks, for its layout to be trusted
@@ -746,12 +748,15 @@ def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndar
     with two labeled markers and unlabeled ones, the two points, each free point within the segment's
     reach and the joint where the latest fit puts it are registered onto the segment's markers under
     every way of labeling the points from them. A labeling counts if its three points fit the calibrated
-    layout as tightly as in calibration; the one whose joint then fits best is taken if it permutes the
-    two labels, fits within COMPLETE_JOINT_RMS_M, and another labeling of the two points fits the layout
+    layout within COMPLETE_FIT_FACTOR times its markers' calibration residual; the one whose joint then
+    fits best is taken if it permutes the two labels, fits within COMPLETE_JOINT_RMS_M, and another
+    labeling of the two points fits the layout
     too but puts the joint clearly farther off: the ambiguity the joint resolves (heel, toe and fifth
     metatarsal make a near-isosceles triangle; its mirror image fits it as well). Where no other labeling
     fits the layout, the free point is as likely a stray one completing a wrong triangle (a torso's
-    markers at L2): left alone. As in `_relabel_by_shape`, the same relabelling must win SHAPE_CONFIRM
+    markers at L2): left alone, unless the two labels themselves misfit the layout's distance between
+    them by COMPLETE_PAIR_MISFIT_M (a tennis wrist marker re-acquired on its neighbour's point after the
+    serve, 29 mm off, stayed there 40 frames with its own point free beside it). As in `_relabel_by_shape`, the same relabelling must win SHAPE_CONFIRM
     checks running on a trusted layout, and the long-run partner distances must not object; the free
     point's label is on probation."""
     m = len(point_index)
@@ -787,18 +792,21 @@ def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndar
         rms3 = _kabsch_rms(np.repeat(layout[slot[maps]], P, axis=0), B[:, 1:], np.ones((C * P, 3), bool)).reshape(C, P)
         A = np.concatenate([joint, np.repeat(model.marker_offsets_m[slot[maps]], P, axis=0)], axis=1)
         rms4 = _kabsch_rms(A, B, np.ones((C * P, 4), bool)).reshape(C, P)
-        tight = max(SHAPE_CLEAR_FIT_M, 2.0 * float(np.sqrt(np.mean(model.layout_rms_m[slot] ** 2))))
+        tight = max(SHAPE_CLEAR_FIT_M, COMPLETE_FIT_FACTOR * float(np.sqrt(np.mean(model.layout_rms_m[slot] ** 2))))
         score = np.where(rms3 <= tight, rms4, np.inf)
         c, p = np.unravel_index(int(np.argmin(score)), score.shape)
         other = (maps[:, 0] != maps[c, 0]) | (maps[:, 1] != maps[c, 1])  # another labeling of the two points
         rival = score[other].min() if other.any() else np.inf
-        if not (np.isfinite(rival) and (maps[c, 0], maps[c, 1]) != (0, 1) and rival >= 2.0 * score[c, p] + SHAPE_CLEAR_MIN_M
+        pair_misfit = abs(_norm(cur[lab[0]] - cur[lab[1]]) - _norm(layout[lab[0]] - layout[lab[1]]))
+        if not ((np.isfinite(rival) or pair_misfit >= COMPLETE_PAIR_MISFIT_M) and (maps[c, 0], maps[c, 1]) != (0, 1) and rival >= 2.0 * score[c, p] + SHAPE_CLEAR_MIN_M
                 and score[c, p] <= COMPLETE_JOINT_RMS_M):
             st.complete_votes.pop(int(k), None)
             continue
         new = (int(slot[maps[c, 0]]), int(slot[maps[c, 1]]), int(slot[maps[c, 2]]), int(near[p]))
         votes = st.complete_votes.get(int(k), ((), 0))  # (the points are renumbered every frame: markers only)
-        votes = (new[:3], votes[1] + 1 if votes[0] == new[:3] else 1)
+        # (the vote is on the pair's labels: with two of its markers hidden, the free point completing the
+        # triangle may be either, frame by frame; a tennis wrist and finger, 2026-11-25)
+        votes = (new[:2], votes[1] + 1 if votes[0] == new[:2] else 1)
         st.complete_votes[int(k)] = votes
         if votes[1] < SHAPE_CONFIRM:
             continue
