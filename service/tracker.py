@@ -67,7 +67,9 @@ PARTNER_MIN_SAMPLES = 20  # a pair distance sampled fewer times cannot make two 
 # spread is not known yet (a sternum marker hidden through the seed took two arm markers seen with it in
 # 3 frames as its most rigid partners, and was never placed again: squat)
 LOOSE_SPREAD_M = 0.015  # partners misfitting more than this hand the prediction to a well-fitting skeleton
-SKELETON_TRUSTED_RMS_M = 0.015  # a skeleton fit with a lower RMS residual may predict markers
+SKELETON_TRUSTED_RMS_M = 0.015
+CROSS_JOINT_DISAGREE_M = 0.12  # a hidden marker whose labeled partners are all on other segments is placed by a
+# well-fitting skeleton when they put it farther than this from it  # a skeleton fit with a lower RMS residual may predict markers
 MAX_GATE_FACTOR = 1.5  # re-acquisition gate at most this times reacquire_gate_m
 # ... and, once a skeleton is fitted, never more than this, however loose the partners and poor the fit:
 # a gate that grew with the partners' misfit to 20 cm around a hidden wrist marker took its neighbour's
@@ -1102,6 +1104,14 @@ def step(
         # the skeleton speaks for markers with no rigid partners in view, and for those whose partners
         # have moved against each other since (spread), when the skeleton itself fits well
         loose = has_rigid & (spread0 > LOOSE_SPREAD_M) & (residual < SKELETON_TRUSTED_RMS_M)
+        # and for those placed only by partners across a joint that put them far from it: partners learned
+        # while the joint held still (an upper-arm marker's torso partners in a standing seed) agree among
+        # themselves and place it where the arm was (24 cm off after a tennis serve, for a second)
+        p = np.maximum(st.partners, 0)
+        seg = model.marker_segment
+        same = (st.partners >= 0) & labeled[p] & (seg[p] == seg[:, None])
+        far = _norm(np.where(has_rigid[:, None], rpred, skel_pred) - skel_pred) > CROSS_JOINT_DISAGREE_M
+        loose |= has_rigid & ~same.any(1) & far & (residual < SKELETON_TRUSTED_RMS_M)
         use_skel = missing & (~has_rigid | loose)
         pred_missing[use_skel] = skel_pred[use_skel]
         # a marker long hidden with its neighbours left its segment unobserved: the fit has kept that
