@@ -1107,11 +1107,17 @@ def step(
         # and for those placed only by partners across a joint that put them far from it: partners learned
         # while the joint held still (an upper-arm marker's torso partners in a standing seed) agree among
         # themselves and place it where the arm was (24 cm off after a tennis serve, for a second)
+        # (where the fit has a word on the segment: it is observed, or held between an observed parent and
+        # child; a foot back before its leg is where the fit left it, and the segment search finds it)
         p = np.maximum(st.partners, 0)
         seg = model.marker_segment
         same = (st.partners >= 0) & labeled[p] & (seg[p] == seg[:, None])
         far = _norm(np.where(has_rigid[:, None], rpred, skel_pred) - skel_pred) > CROSS_JOINT_DISAGREE_M
-        loose |= has_rigid & ~same.any(1) & far & (residual < SKELETON_TRUSTED_RMS_M)
+        observed = _observed_segments(seg, labeled)
+        child_seen = np.zeros(N_SEGMENTS, bool)
+        child_seen[_PARENTS[observed & (_PARENTS >= 0)]] = True
+        held = observed | (child_seen & (_PARENTS >= 0) & observed[np.maximum(_PARENTS, 0)])
+        loose |= has_rigid & ~same.any(1) & far & held[np.maximum(seg, 0)] & (residual < SKELETON_TRUSTED_RMS_M)
         use_skel = missing & (~has_rigid | loose)
         pred_missing[use_skel] = skel_pred[use_skel]
         # a marker long hidden with its neighbours left its segment unobserved: the fit has kept that
