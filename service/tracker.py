@@ -129,7 +129,8 @@ SHAPE_CLEAR_SHARE = 0.6
 SHAPE_CLEAR_FIT_M = 0.002
 COMPLETE_FIT_FACTOR = 3.0  # (`_complete_by_free_point`) a labeling whose three points fit the layout within this times its markers' residual ...
 COMPLETE_JOINT_RMS_M = 0.02  # ... and whose markers and joint fit the offsets this well [m] RMS ...
-COMPLETE_PAIR_MISFIT_M = 0.01  # ... is taken unrivalled when the labeled pair's distance misfits the layout's by this much [m]
+COMPLETE_PAIR_MISFIT_M = 0.01  # ... is taken unrivalled when the labeled pair's distance misfits the layout's by this much [m] ...
+COMPLETE_UNRIVALLED_JOINT_M = 0.1  # ... and the joint fits within this [m] RMS (the pair is wrong: the joint only guards)
 SHAPE_CONFIRM = 2  # ... when the same relabelling wins this many checks running
 SHAPE_FIT_ALPHA = SHAPE_EVERY_FRAMES / 200  # the share of checks (over ~200 frames) on which a segment's labels fit its layout, a running mean ...
 SHAPE_TRUSTED_SHARE = 0.3  # ... at least this, over more than SHAPE_MIN_CHECKS checks, for its layout to be trusted
@@ -758,7 +759,10 @@ def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndar
     fits the layout, the free point is as likely a stray one completing a wrong triangle (a torso's
     markers at L2): left alone, unless the two labels themselves misfit the layout's distance between
     them by COMPLETE_PAIR_MISFIT_M (a tennis wrist marker re-acquired on its neighbour's point after the
-    serve, 29 mm off, stayed there 40 frames with its own point free beside it). As in `_relabel_by_shape`, the same relabelling must win SHAPE_CONFIRM
+    serve, 29 mm off, stayed there 40 frames with its own point free beside it). The pair is wrong then,
+    and the joint only guards against a far-fetched triangle (COMPLETE_UNRIVALLED_JOINT_M): a skeleton
+    fitting at 20-30 mm put a tennis player's ankle joint 5-9 cm from a heel label on the toe's point,
+    which stayed there 2.3 s. As in `_relabel_by_shape`, the same relabelling must win SHAPE_CONFIRM
     checks running on a trusted layout, and the long-run partner distances must not object; the free
     point's label is on probation."""
     m = len(point_index)
@@ -800,8 +804,9 @@ def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndar
         other = (maps[:, 0] != maps[c, 0]) | (maps[:, 1] != maps[c, 1])  # another labeling of the two points
         rival = score[other].min() if other.any() else np.inf
         pair_misfit = abs(_norm(cur[lab[0]] - cur[lab[1]]) - _norm(layout[lab[0]] - layout[lab[1]]))
-        if not ((np.isfinite(rival) or pair_misfit >= COMPLETE_PAIR_MISFIT_M) and (maps[c, 0], maps[c, 1]) != (0, 1) and rival >= 2.0 * score[c, p] + SHAPE_CLEAR_MIN_M
-                and score[c, p] <= COMPLETE_JOINT_RMS_M):
+        unrivalled = not np.isfinite(rival) and pair_misfit >= COMPLETE_PAIR_MISFIT_M
+        if not ((np.isfinite(rival) or unrivalled) and (maps[c, 0], maps[c, 1]) != (0, 1) and rival >= 2.0 * score[c, p] + SHAPE_CLEAR_MIN_M
+                and score[c, p] <= (COMPLETE_UNRIVALLED_JOINT_M if unrivalled else COMPLETE_JOINT_RMS_M)):
             st.complete_votes.pop(int(k), None)
             continue
         new = (int(slot[maps[c, 0]]), int(slot[maps[c, 1]]), int(slot[maps[c, 2]]), int(near[p]))
