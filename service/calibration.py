@@ -154,12 +154,14 @@ def _seg_dist(q, a, b):
 
 
 def calibrate(
-    positions_m: np.ndarray, history_m: np.ndarray | None = None, distance_sd: np.ndarray | None = None
+    positions_m: np.ndarray, history_m: np.ndarray | None = None, distance_sd: np.ndarray | None = None,
+    feet_of: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Skeleton of an upright subject from one frame of its markers (M, 3; NaN = unseen, filled by caller).
     With `history_m` (F, M, 3) showing motion, markers whose nearest bones are close calls go to the
     segment whose markers keep the steadiest distances to them (they move rigidly together);
-    `distance_sd`, the history's `_distance_sd` if the caller has it.
+    `distance_sd`, the history's `_distance_sd` if the caller has it. `feet_of`, the marker segments of a
+    first calibration of the same frame: its feet keep their markers, and the legs run to where they stand.
 
     Returns (marker_segment (M,), marker_offsets_m (M, 3), joint_offsets_m (14, 3), t_world_root_m (3,),
     R_parent_segment (14, 3, 3)) — the calibration pose is the model's zero pose.
@@ -204,10 +206,20 @@ def calibrate(
         J[f"{side}_forearm"] = elbow
         tips[f"{side}_forearm"] = elbow + d_fa * _FOREARM_HAND
         hip = np.array([0.0, s * _HIP_Y, _HIP_Z])
+        # with `feet_of` (the marker segments of a first calibration), the leg runs from the hip to where
+        # that calibration's foot stands: a wide stance or a foot set back bent the straight-down leg away
+        # from the markers (a toe went to the shank and a shin marker to the thigh, cmu/85_02). The sides
+        # come from the first calibration, whose legs `_uncross_sides` has checked (feet taken by the
+        # midline between them came out crossed mid-stride, and the legs above them with them, cmu/07_01).
+        ankle = np.array([0.0, s * _HIP_Y, _ANKLE_Z])
+        if feet_of is not None:
+            on_foot = np.isfinite(Q[:, 0]) & (feet_of == S[f"{side}_foot"])
+            if on_foot.any():
+                ankle[:2] = Q[on_foot, :2].mean(0) - [0.5 * _FOOT_FWD, 0.0]
         J[f"{side}_thigh"] = hip
-        J[f"{side}_shank"] = np.array([0.0, s * _HIP_Y, _KNEE_Z])
-        J[f"{side}_foot"] = np.array([0.0, s * _HIP_Y, _ANKLE_Z])
-        tips[f"{side}_foot"] = np.array([_FOOT_FWD, s * _HIP_Y, 0.01])
+        J[f"{side}_shank"] = hip + (ankle - hip) * (_HIP_Z - _KNEE_Z) / (_HIP_Z - _ANKLE_Z)
+        J[f"{side}_foot"] = ankle
+        tips[f"{side}_foot"] = np.array([ankle[0] + _FOOT_FWD, ankle[1], 0.01])
         tips[f"{side}_shank"] = J[f"{side}_foot"]
         tips[f"{side}_thigh"] = J[f"{side}_shank"]
         tips[f"{side}_upperarm"] = J[f"{side}_forearm"]
@@ -237,6 +249,9 @@ def calibrate(
             (sgn * Q[:, 1] > _SHOULDER_Y + 0.03) | ((sgn * Q[:, 1] > 0.09) & (np.minimum(d_up, d_fore) < reach))
         )
         marker_segment[on_arm] = np.where(d_up[on_arm] < d_fore[on_arm], S[f"{side}_upperarm"], S[f"{side}_forearm"])
+    if feet_of is not None:  # the first pass's feet keep their markers (a heel raised mid-stride is not shank)
+        on_feet = np.isin(feet_of, [S["l_foot"], S["r_foot"]])
+        marker_segment[on_feet] = feet_of[on_feet]
     if history_m is not None and len(history_m) >= 10:
         sd = _distance_sd(history_m) if distance_sd is None else distance_sd
         marker_segment = _by_rigidity(marker_segment, cost, history_m, bone_cost, sd=sd)
@@ -440,8 +455,9 @@ def calibrate_from_history(history_m: np.ndarray):
     So several frames are calibrated, each scored by how rigidly its segments' markers move over the
     history (`layout_residuals`) plus how well its joints hold the segments together
     (`articulation_error`); the best replaces the fullest frame's when it scores under CANDIDATE_GAIN of
-    it. Markers never seen keep offset zero (the engine parks them until they are seen). Pure, for the
-    helper process."""
+    it. Each frame is calibrated twice, legs straight down and then to where the first pass's feet stand
+    (`calibrate`'s feet_of), and the better scoring of the two counts. Markers never seen keep offset
+    zero (the engine parks them until they are seen). Pure, for the helper process."""
     seen = np.isfinite(history_m[..., 0]).sum(1)
     first = int(np.argmax(seen))
     full = np.flatnonzero(seen >= seen[first] - 2)
@@ -451,16 +467,24 @@ def calibrate_from_history(history_m: np.ndarray):
     for i in [first, *sorted(set(others.tolist()) - {first})]:
         ref = fill_reference(history_m, frame=i)
         ok = np.isfinite(ref[:, 0])
-        try:
-            seg, off, joints, t_root, R = calibrate(np.where(ok[:, None], ref, np.nan), history_m, sd)
-        except CalibrationError:
+        score, result, feet_of = np.inf, None, None
+        for _ in range(2):  # legs straight down, then to where the first pass's feet stand; the better counts
+            try:
+                seg, off, joints, t_root, R = calibrate(np.where(ok[:, None], ref, np.nan), history_m, sd, feet_of)
+            except CalibrationError:
+                break
+            feet_of = seg
+            off = np.where(ok[:, None], off, 0.0)  # never seen: parked on the pelvis with zero weight
+            layout = layout_residuals(history_m, seg, off)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # nothing measured: NaN, scored as the worst
+                s_ = np.nanmedian(layout) + articulation_error(ref, history_m, seg, joints, t_root, R)
+            s_ = s_ if np.isfinite(s_) else np.inf
+            if result is None or s_ < score:
+                score, result = s_, (seg, off, joints, t_root, R, layout)
+        if result is None:
             continue
-        off = np.where(ok[:, None], off, 0.0)  # never seen: parked on the pelvis with zero weight
-        layout = layout_residuals(history_m, seg, off)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # nothing measured: NaN, scored as the worst
-            score = np.nanmedian(layout) + articulation_error(ref, history_m, seg, joints, t_root, R)
-        score = score if np.isfinite(score) else np.inf
+        seg, off, joints, t_root, R, layout = result
         if best is None:
             first_score = score
         if best is None or (score < best_score and score < CANDIDATE_GAIN * first_score):

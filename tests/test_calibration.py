@@ -402,3 +402,14 @@ def test_uncross_sides_swaps_crossed_feet_back_when_the_legs_moved_and_only_then
     assert (_uncross_sides(crossed, _distance_sd(walking)) == truth).all()
     assert (_uncross_sides(truth, _distance_sd(walking)) == truth).all()
     assert (_uncross_sides(crossed, _distance_sd(standing)) == crossed).all()  # nothing moved: nothing to tell
+
+
+def test_a_wide_stance_puts_shin_and_toe_markers_on_shank_and_foot():
+    """Real data (85_02, L2, seed 1): the subject stands with the right foot out to the side and set back.
+    Against legs hanging straight down from the hips, the right toe marker lay nearer the shank's bone and
+    the shin marker nearer the thigh's, and went there (the skeleton then fitted at 17-23 mm). The legs
+    now run from the hips to where the feet stand."""
+    got = _seed_calibration("cmu/85_02.c3d", "Male", "L2", 1)
+    want = {"RSHN": "r_shank", "LSHN": "l_shank", "RKNE": "r_thigh", "LKNE": "l_thigh",
+            "RTOE": "r_foot", "RMT5": "r_foot", "RANK": "r_foot", "RHEE": "r_foot"}
+    assert {k: got[k] for k in want} == want
