@@ -67,9 +67,9 @@ PARTNER_MIN_SAMPLES = 20  # a pair distance sampled fewer times cannot make two 
 # spread is not known yet (a sternum marker hidden through the seed took two arm markers seen with it in
 # 3 frames as its most rigid partners, and was never placed again: squat)
 LOOSE_SPREAD_M = 0.015  # partners misfitting more than this hand the prediction to a well-fitting skeleton
-SKELETON_TRUSTED_RMS_M = 0.015
+SKELETON_TRUSTED_RMS_M = 0.015  # a skeleton fit with a lower RMS residual may predict markers
 CROSS_JOINT_DISAGREE_M = 0.12  # a hidden marker whose labeled partners are all on other segments is placed by a
-# well-fitting skeleton when they put it farther than this from it  # a skeleton fit with a lower RMS residual may predict markers
+# well-fitting skeleton when they put it farther than this from it
 MAX_GATE_FACTOR = 1.5  # re-acquisition gate at most this times reacquire_gate_m
 # ... and, once a skeleton is fitted, never more than this, however loose the partners and poor the fit:
 # a gate that grew with the partners' misfit to 20 cm around a hidden wrist marker took its neighbour's
@@ -753,9 +753,9 @@ def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndar
     every way of labeling the points from them. A labeling counts if its three points fit the calibrated
     layout within COMPLETE_FIT_FACTOR times its markers' calibration residual; the one whose joint then
     fits best is taken if it permutes the two labels, fits within COMPLETE_JOINT_RMS_M, and another
-    labeling of the two points fits the layout
-    too but puts the joint clearly farther off: the ambiguity the joint resolves (heel, toe and fifth
-    metatarsal make a near-isosceles triangle; its mirror image fits it as well). Where no other labeling
+    labeling of the two points fits the layout too but puts the joint clearly farther off: the ambiguity
+    the joint resolves (heel, toe and fifth metatarsal make a near-isosceles triangle; its mirror image
+    fits it as well). Where no other labeling
     fits the layout, the free point is as likely a stray one completing a wrong triangle (a torso's
     markers at L2): left alone, unless the two labels themselves misfit the layout's distance between
     them by COMPLETE_PAIR_MISFIT_M (a tennis wrist marker re-acquired on its neighbour's point after the

@@ -383,6 +383,58 @@ def test_two_labels_swapped_on_a_mirror_symmetric_foot_are_put_back_by_its_joint
     assert st.provisional[heel] == tracker.PROBATION_FRAMES
 
 
+def test_a_label_on_a_hidden_neighbours_point_is_put_back_by_the_free_point_though_the_fit_is_off():
+    """A foot's toe label re-acquired on the heel's point (the heel hidden, the toe's own point free beside
+    it), as a tennis player's heel label sat on the toe's point for 2.3 s: the fifth metatarsal and the
+    point called toe are 3 cm farther apart than the layout's metatarsal and toe, so the pair is wrong, and
+    no other labeling of the two points with a free one fits the layout (no rival). The free point then
+    completes the foot even with the fit's ankle 5 cm off (a skeleton fitting at 20-30 mm): the heel label
+    takes its point and the toe label the free one, after SHAPE_CONFIRM checks. Correct labels are left
+    alone, and so is the pair with the fit's ankle 30 cm off (a far-fetched triangle)."""
+    from protocol.skeleton import SEGMENTS
+    from service.calibration import world_transforms
+
+    perf = perform(3, duration_s=0.1)
+    m, k = len(perf.marker_names), SEGMENTS.index("r_foot")
+    heel, toe, mt5 = (perf.marker_names.index(n) for n in ("RHEE", "RTOE", "RMT5"))
+    off = perf.marker_offsets_m.copy()
+    off[heel], off[toe], off[mt5] = [-0.07, 0.0, -0.04], [0.14, 0.02, -0.045], [0.09, -0.04, -0.045]
+    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, off, perf.joint_offsets_m, True,
+                                 layout_offsets_m=off, layout_rms_m=np.full(m, 0.001))
+    R = Rotation.from_quat(perf.rotations_xyzw[0]).as_matrix()
+    Rs, ps = world_transforms(perf.root_position_m[0], R, perf.joint_offsets_m)
+    points = perf.recording.points_m[0].copy()
+    foot = [heel, toe, mt5]
+    points[foot] = off[foot] @ Rs[k].T + ps[k]
+    right = np.arange(m)
+    right[heel] = -1  # the heel hidden from the labels; its point is free
+    wrong = right.copy()
+    wrong[toe], wrong[heel] = heel, -1  # the toe label on the heel's point, the toe's point free
+
+    def run(point_index, shift_m):
+        st = tracker.new_state(model, points, t_ns(0))
+        st.t_root_m, st.R_parent_segment = perf.root_position_m[0] + [shift_m, 0.0, 0.0], R
+        st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
+        changed = np.zeros(m, bool)
+        for _ in range(tracker.SHAPE_CONFIRM + 1):
+            cand = np.ones(len(points), bool)
+            cand[point_index[point_index >= 0]] = False
+            cur = tracker._gather(points, point_index)
+            changed |= tracker._complete_by_free_point(model, st, points, cand, point_index, cur)
+        return changed
+
+    idx = right.copy()
+    assert not run(idx, 0.05).any() and (idx == right).all()
+    idx = wrong.copy()
+    assert not run(idx, 0.3).any() and (idx == wrong).all()
+    idx = wrong.copy()
+    changed = run(idx, 0.05)
+    want = right.copy()
+    want[heel] = heel
+    assert (idx == want).all()
+    assert set(np.flatnonzero(changed)) == {heel, toe}
+
+
 def test_a_re_acquired_label_on_a_hidden_neighbours_point_is_handed_to_it():
     """A forearm marker re-acquired on the point of another forearm marker, which is unlabeled (both were
     hidden; it came back first): the layout says the point is the other's, so it is handed over once
