@@ -127,6 +127,12 @@ SHAPE_CLEAR_MIN_LABELS = 3
 SHAPE_CLEAR_LAYOUT_M = 0.0025
 SHAPE_CLEAR_SHARE = 0.6
 SHAPE_CLEAR_FIT_M = 0.002
+# `_reseat_outliers`: a segment with this many labels or more whose labels misfit its layout by this times
+# the layout's residual (as `_complete_by_free_point` counts it) ...
+RESEAT_MIN_LABELS = 4
+RESEAT_MISFIT_FACTOR = 3.0
+RESEAT_SHARE = 0.35  # ... and fit it within this share of that misfit (or the residual) with one label left out ...
+RESEAT_RADIUS_M = 0.02  # ... has that label moved to a point this close to where the others put it
 COMPLETE_FIT_FACTOR = 3.0  # (`_complete_by_free_point`) a labeling whose three points fit the layout within this times its markers' residual ...
 COMPLETE_JOINT_RMS_M = 0.02  # ... and whose markers and joint fit the offsets this well [m] RMS ...
 COMPLETE_PAIR_MISFIT_M = 0.01  # ... is taken unrivalled when the labeled pair's distance misfits the layout's by this much [m] ...
@@ -235,6 +241,8 @@ class TrackState:
     shape_checks: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(N_SEGMENTS))
     # `_complete_by_free_point`: per segment, the relabelling asked for on the last checks, and how many running
     complete_votes: dict = dataclasses.field(default_factory=dict)
+    # `_reseat_outliers`: per marker, the point owner (marker, -1 = a free point) proposed on the last checks, and how many running
+    reseat_votes: dict = dataclasses.field(default_factory=dict)
     # `_joints_m`: the segment origins of the pose (t_root_m, R_parent_segment, joint offsets) they were computed for
     joints_cache: tuple | None = None
 
@@ -837,6 +845,86 @@ def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndar
     return point_index != before
 
 
+def _reseat_outliers(model: SubjectModel, st: TrackState, points: np.ndarray, cand: np.ndarray,
+                     point_index: np.ndarray, cur: np.ndarray) -> np.ndarray:
+    """Move a label its segment's layout says is off to the point where the layout puts it. In place;
+    returns the markers whose point changed.
+
+    A wrist marker tracked onto the waist marker's point as the hand rested on the hip (and the waist's
+    label onto the wrist's) stays there: the two points lie 4-5 cm apart, about as far from every partner,
+    so no distance tells, and no permutation within either segment undoes a swap between segments (135_02
+    at L2, 0.6 s). The forearm's other labels still fit its layout: registered without the outlier, they
+    put it on its own point. For each segment with a trusted layout and RESEAT_MIN_LABELS labels or more
+    that misfits it, the one label whose leaving out makes the rest fit (RESEAT_SHARE; leaving out any
+    other fits at least twice as badly) is moved to the point nearest where the rest put it, within
+    RESEAT_RADIUS_M: a free point, or another segment's label's point, whose label then takes the
+    outlier's point if its long-run partner distances do not object. The same move must win SHAPE_CONFIRM
+    checks running. (Dev suite, 8 files x L2/L3 x 6 corruption seeds: L2 99.01 -> 99.10 %, L3 97.18 ->
+    97.27 %.)"""
+    m = len(point_index)
+    changed = np.zeros(m, bool)
+    if model.layout_rms_m is None or len(model.layout_rms_m) != m or model.layout_offsets_m is None:
+        return changed
+    labeled = point_index >= 0
+    seg, layout = model.marker_segment, model.layout_offsets_m
+    slots = st.ever_seen & (seg >= 0) & (model.layout_rms_m < SHAPE_LAYOUT_TOL_M)
+    n_lab = np.bincount(seg[labeled & slots], minlength=N_SEGMENTS)
+    trusted = (st.shape_fit >= SHAPE_TRUSTED_SHARE) & (st.shape_checks > SHAPE_MIN_CHECKS)
+    proposed = set()
+    for k in np.flatnonzero((n_lab >= RESEAT_MIN_LABELS) & trusted):
+        lab = np.flatnonzero(labeled & slots & (seg == k))
+        n = len(lab)
+        tight = max(SHAPE_CLEAR_FIT_M, COMPLETE_FIT_FACTOR * float(np.sqrt(np.mean(model.layout_rms_m[lab] ** 2))))
+        # all labels, then each left out (one batch)
+        w = np.ones((n + 1, n), bool)
+        w[np.arange(1, n + 1), np.arange(n)] = False
+        rms = _kabsch_rms(np.broadcast_to(layout[lab], (n + 1, n, 3)), np.broadcast_to(cur[lab], (n + 1, n, 3)), w)
+        if rms[0] <= RESEAT_MISFIT_FACTOR * tight:
+            continue
+        order = np.argsort(rms[1:])
+        j = int(order[0])
+        if not (rms[1 + j] <= max(tight, RESEAT_SHARE * rms[0]) and rms[1 + order[1]] >= 2.0 * rms[1 + j]):
+            continue
+        i = int(lab[j])
+        rest = np.delete(lab, j)
+        R, t = rigid_motion(layout[rest], cur[rest])
+        x = R @ layout[i] + t
+        d = _norm(points - x)
+        p = int(np.argmin(d))
+        if d[p] > RESEAT_RADIUS_M or p == point_index[i]:
+            st.reseat_votes.pop(i, None)
+            continue
+        owner = np.flatnonzero(point_index == p)
+        q = int(owner[0]) if len(owner) else -1
+        if q < 0 and not cand[p]:
+            continue  # another subject's point
+        if q >= 0 and seg[q] == k:
+            continue  # a permutation within the segment: `_relabel_by_shape`'s
+        votes = st.reseat_votes.get(i, (None, 0))
+        votes = (q, votes[1] + 1 if votes[0] == q else 1)
+        st.reseat_votes[i] = votes
+        proposed.add(i)
+        if votes[1] < SHAPE_CONFIRM:
+            continue
+        del st.reseat_votes[i]
+        new = point_index.copy()
+        new[i] = p
+        if q >= 0:
+            new[q] = point_index[i]
+            z_now = distance_misfit(st, cur, labeled, np.array([q]))[q]
+            z_new = distance_misfit(st, _gather(points, new), new >= 0, np.array([q]))[q]
+            if np.isfinite(z_new) and z_new > max(Z_SUSPECT, 2.0 * (z_now if np.isfinite(z_now) else 0.0)):
+                continue
+        moved = np.flatnonzero(new != point_index)
+        point_index[:] = new
+        changed[moved] = True
+        cur[:] = _gather(points, point_index)
+        labeled = point_index >= 0
+    for i in [i for i in st.reseat_votes if i not in proposed]:
+        del st.reseat_votes[i]
+    return changed
+
+
 @functools.lru_cache(maxsize=None)
 def _relabellings(n: int, s: int | None = None) -> np.ndarray:
     """(C, n) ways to give n labeled points (now on slots 0..n-1 of a segment's s >= n marker slots; the
@@ -1248,6 +1336,7 @@ def step(
         if model.has_skeleton and st.frames % SHAPE_EVERY_FRAMES == 0:
             relabeled = _relabel_by_shape(model, st, points, idx, now)
             relabeled |= _complete_by_free_point(model, st, points, ~taken & free, idx, now)
+            relabeled |= _reseat_outliers(model, st, points, ~taken & free, idx, now)
             if relabeled.any():
                 # the last fit followed the permuted labels (it turned the forearm half a turn to match):
                 # its word on these markers is void until a fit on the new labels (launched here) comes back

@@ -435,6 +435,61 @@ def test_a_label_on_a_hidden_neighbours_point_is_put_back_by_the_free_point_thou
     assert set(np.flatnonzero(changed)) == {heel, toe}
 
 
+def test_a_wrist_label_on_the_waist_markers_point_is_reseated_where_its_forearm_puts_it():
+    """A hand resting on the hip: the wrist marker's label on the waist marker's point and the waist's on
+    the wrist's, 4 cm apart. No permutation within either segment undoes it, but the forearm's other labels
+    still fit its layout and put the wrist label back on its own point; the waist's label takes the point
+    the wrist's left. After SHAPE_CONFIRM checks, not before; correct labels are left alone, and so is a
+    forearm whose every label misfits alike (nothing to tell which is off)."""
+    from protocol.skeleton import SEGMENTS
+
+    perf = perform(3, duration_s=0.1)
+    m = len(perf.marker_names)
+    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
+                                 perf.joint_offsets_m, True, layout_offsets_m=perf.marker_offsets_m,
+                                 layout_rms_m=np.full(m, 0.001))
+    fore = np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
+    pelvis = np.flatnonzero(perf.marker_segment == SEGMENTS.index("pelvis"))
+    assert len(fore) >= tracker.RESEAT_MIN_LABELS and len(pelvis) >= 3
+    wrist, waist = int(fore[0]), int(pelvis[0])
+    points = perf.recording.points_m[0].copy()
+    points[waist] = points[wrist] + [0.04, 0.0, 0.0]  # the hand at the hip
+    st = tracker.new_state(model, points, t_ns(0))
+    st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
+    right = np.arange(m)
+    swapped = right.copy()
+    swapped[wrist], swapped[waist] = waist, wrist
+
+    def check(point_index):
+        cand = np.zeros(len(points), bool)
+        cur = tracker._gather(points, point_index)
+        changed = tracker._reseat_outliers(model, st, points, cand, point_index, cur)
+        np.testing.assert_array_equal(cur, tracker._gather(points, point_index))
+        return changed
+
+    idx = right.copy()
+    for _ in range(tracker.SHAPE_CONFIRM + 1):
+        assert not check(idx).any()
+    assert (idx == right).all()
+    idx = swapped.copy()
+    for _ in range(tracker.SHAPE_CONFIRM - 1):
+        assert not check(idx).any()
+    changed = check(idx)
+    assert (idx == right).all()
+    assert set(np.flatnonzero(changed)) == {wrist, waist}
+    # every forearm label 3 cm off along a different direction: leaving out one fits no better than another
+    idx = right.copy()
+    moved = points.copy()
+    rng = np.random.default_rng(0)
+    for i in fore:
+        v = rng.normal(size=3)
+        moved[i] += 0.03 * v / np.linalg.norm(v)
+    st.reseat_votes.clear()
+    for _ in range(tracker.SHAPE_CONFIRM + 1):
+        cur = tracker._gather(moved, idx)
+        assert not tracker._reseat_outliers(model, st, moved, np.ones(len(moved), bool), idx, cur).any()
+
+
 def test_a_re_acquired_label_on_a_hidden_neighbours_point_is_handed_to_it():
     """A forearm marker re-acquired on the point of another forearm marker, which is unlabeled (both were
     hidden; it came back first): the layout says the point is the other's, so it is handed over once
