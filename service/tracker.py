@@ -748,6 +748,25 @@ def _kabsch_rms(A: np.ndarray, B: np.ndarray, w: np.ndarray) -> np.ndarray:
     return kernels.kabsch_rms(np.require(A, np.float64, "CW"), np.require(B, np.float64, "CW"), np.require(w, bool, "CW"))
 
 
+def _layout_slots(model: SubjectModel, st: TrackState) -> np.ndarray | None:
+    """(M,) the markers the layout checks judge: ever seen, and their calibrated layout held within
+    SHAPE_LAYOUT_TOL_M (NaN compares False); None if the model has no measured layout."""
+    if model.layout_rms_m is None or len(model.layout_rms_m) != model.n_markers or model.layout_offsets_m is None:
+        return None
+    return st.ever_seen & (model.marker_segment >= 0) & (model.layout_rms_m < SHAPE_LAYOUT_TOL_M)
+
+
+def _trusted_layouts(st: TrackState) -> np.ndarray:
+    """(N_SEGMENTS,) segments whose labels fitted their layout on enough checks for it to be trusted."""
+    return (st.shape_fit >= SHAPE_TRUSTED_SHARE) & (st.shape_checks > SHAPE_MIN_CHECKS)
+
+
+def _layout_tolerance(model: SubjectModel, markers: np.ndarray) -> float:
+    """[m] RMS within which these markers fit their layout when labeled right: COMPLETE_FIT_FACTOR times
+    their calibration residual, at least SHAPE_CLEAR_FIT_M."""
+    return max(SHAPE_CLEAR_FIT_M, COMPLETE_FIT_FACTOR * float(np.sqrt(np.mean(model.layout_rms_m[markers] ** 2))))
+
+
 def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndarray, cand: np.ndarray,
                             point_index: np.ndarray, cur: np.ndarray) -> np.ndarray:
     """Put back two labels of a segment permuted while its other markers hide, using a free point and the
@@ -773,15 +792,14 @@ def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndar
     which stayed there 2.3 s. As in `_relabel_by_shape`, the same relabelling must win SHAPE_CONFIRM
     checks running on a trusted layout, and the long-run partner distances must not object; the free
     point's label is on probation."""
-    m = len(point_index)
-    if model.layout_rms_m is None or len(model.layout_rms_m) != m or model.layout_offsets_m is None:
-        return np.zeros(m, bool)
+    slots = _layout_slots(model, st)
+    if slots is None:
+        return np.zeros(len(point_index), bool)
     labeled = point_index >= 0
     seg, layout = model.marker_segment, model.layout_offsets_m
-    slots = st.ever_seen & (seg >= 0) & (model.layout_rms_m < SHAPE_LAYOUT_TOL_M)
     n_lab = np.bincount(seg[labeled & slots], minlength=N_SEGMENTS)
     n_spare = np.bincount(seg[~labeled & slots], minlength=N_SEGMENTS)
-    trusted = (st.shape_fit >= SHAPE_TRUSTED_SHARE) & (st.shape_checks > SHAPE_MIN_CHECKS)
+    trusted = _trusted_layouts(st)
     pool = np.flatnonzero(cand)
     before = point_index.copy()
     small = n_lab + n_spare <= SHAPE_ALL_MAPS + 1  # every labeling of three of its markers is tried
@@ -806,7 +824,7 @@ def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndar
         rms3 = _kabsch_rms(np.repeat(layout[slot[maps]], P, axis=0), B[:, 1:], np.ones((C * P, 3), bool)).reshape(C, P)
         A = np.concatenate([joint, np.repeat(model.marker_offsets_m[slot[maps]], P, axis=0)], axis=1)
         rms4 = _kabsch_rms(A, B, np.ones((C * P, 4), bool)).reshape(C, P)
-        tight = max(SHAPE_CLEAR_FIT_M, COMPLETE_FIT_FACTOR * float(np.sqrt(np.mean(model.layout_rms_m[slot] ** 2))))
+        tight = _layout_tolerance(model, slot)
         score = np.where(rms3 <= tight, rms4, np.inf)
         c, p = np.unravel_index(int(np.argmin(score)), score.shape)
         other = (maps[:, 0] != maps[c, 0]) | (maps[:, 1] != maps[c, 1])  # another labeling of the two points
@@ -861,20 +879,19 @@ def _reseat_outliers(model: SubjectModel, st: TrackState, points: np.ndarray, ca
     outlier's point if its long-run partner distances do not object. The same move must win SHAPE_CONFIRM
     checks running. (Dev suite, 8 files x L2/L3 x 6 corruption seeds: L2 99.01 -> 99.10 %, L3 97.18 ->
     97.27 %.)"""
-    m = len(point_index)
-    changed = np.zeros(m, bool)
-    if model.layout_rms_m is None or len(model.layout_rms_m) != m or model.layout_offsets_m is None:
+    changed = np.zeros(len(point_index), bool)
+    slots = _layout_slots(model, st)
+    if slots is None:
         return changed
     labeled = point_index >= 0
     seg, layout = model.marker_segment, model.layout_offsets_m
-    slots = st.ever_seen & (seg >= 0) & (model.layout_rms_m < SHAPE_LAYOUT_TOL_M)
     n_lab = np.bincount(seg[labeled & slots], minlength=N_SEGMENTS)
-    trusted = (st.shape_fit >= SHAPE_TRUSTED_SHARE) & (st.shape_checks > SHAPE_MIN_CHECKS)
+    trusted = _trusted_layouts(st)
     proposed = set()
     for k in np.flatnonzero((n_lab >= RESEAT_MIN_LABELS) & trusted):
         lab = np.flatnonzero(labeled & slots & (seg == k))
         n = len(lab)
-        tight = max(SHAPE_CLEAR_FIT_M, COMPLETE_FIT_FACTOR * float(np.sqrt(np.mean(model.layout_rms_m[lab] ** 2))))
+        tight = _layout_tolerance(model, lab)
         # all labels, then each left out (one batch)
         w = np.ones((n + 1, n), bool)
         w[np.arange(1, n + 1), np.arange(n)] = False
@@ -963,10 +980,10 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     changed = np.zeros(m, bool)
     labeled = point_index >= 0
     seg = model.marker_segment
-    if model.layout_rms_m is None or len(model.layout_rms_m) != m or model.layout_offsets_m is None:
+    slots = _layout_slots(model, st)
+    if slots is None:
         return changed
     layout = model.layout_offsets_m
-    slots = st.ever_seen & (seg >= 0) & (model.layout_rms_m < SHAPE_LAYOUT_TOL_M)  # NaN compares False
     counts = np.bincount(seg[labeled & slots], minlength=int(seg.max()) + 1)
     ks = np.flatnonzero(counts >= SHAPE_MIN_LABELED)
     if len(ks) == 0:

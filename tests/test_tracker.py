@@ -327,28 +327,37 @@ def test_labels_permuted_within_a_segment_are_put_back_by_its_layout(segment, fi
     assert set(np.flatnonzero(changed)) == set(fore[:3])
 
 
+def _right_foot(heel_m, toe_m, mt5_m):
+    """A synthetic performer's first frame with its right foot's heel, toe and fifth metatarsal markers
+    moved to these offsets (its layout, calibrated to 1 mm): (perf, model, R_parent_segment, points,
+    the ankle joint's position)."""
+    from protocol.skeleton import SEGMENTS
+    from service.calibration import world_transforms
+
+    perf = perform(3, duration_s=0.1)
+    m, k = len(perf.marker_names), SEGMENTS.index("r_foot")
+    foot = [perf.marker_names.index(n) for n in ("RHEE", "RTOE", "RMT5")]
+    off = perf.marker_offsets_m.copy()
+    off[foot] = [heel_m, toe_m, mt5_m]
+    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, off, perf.joint_offsets_m, True,
+                                 layout_offsets_m=off, layout_rms_m=np.full(m, 0.001))
+    R = Rotation.from_quat(perf.rotations_xyzw[0]).as_matrix()
+    Rs, ps = world_transforms(perf.root_position_m[0], R, perf.joint_offsets_m)
+    points = perf.recording.points_m[0].copy()
+    points[foot] = off[foot] @ Rs[k].T + ps[k]
+    return perf, model, R, points, ps[k]
+
+
 def test_two_labels_swapped_on_a_mirror_symmetric_foot_are_put_back_by_its_joint_and_a_free_point():
     """A foot whose toe and fifth metatarsal markers are mirror images about the plane of its heel marker
     and ankle: with the heel hidden, the toe and metatarsal labels swapped fit every layout distance. The
     heel's point, in view and free, and the ankle where the fit puts it tell them apart (their mirror image
     is no rotation of them): after SHAPE_CONFIRM checks the two labels are swapped back and the heel
     labeled. Correct labels are left alone, and so are swapped ones with no free point to tell."""
-    from protocol.skeleton import SEGMENTS
-    from service.calibration import world_transforms
-
-    perf = perform(3, duration_s=0.1)
-    m, k = len(perf.marker_names), SEGMENTS.index("r_foot")
-    heel, toe, mt5 = (perf.marker_names.index(n) for n in ("RHEE", "RTOE", "RMT5"))
-    off = perf.marker_offsets_m.copy()
-    off[heel], off[toe], off[mt5] = [-0.07, 0.0, -0.04], [0.12, 0.035, -0.045], [0.12, -0.035, -0.045]
-    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, off, perf.joint_offsets_m, True,
-                                 layout_offsets_m=off, layout_rms_m=np.full(m, 0.001))
-    R = Rotation.from_quat(perf.rotations_xyzw[0]).as_matrix()
-    Rs, ps = world_transforms(perf.root_position_m[0], R, perf.joint_offsets_m)
-    points = perf.recording.points_m[0].copy()
-    foot = [heel, toe, mt5]
-    points[foot] = off[foot] @ Rs[k].T + ps[k]
-    points = np.vstack([points, ps[k] + [0.0, 0.0, 1.5]])  # a stray free point, far from the foot
+    perf, model, R, points, ankle = _right_foot([-0.07, 0.0, -0.04], [0.12, 0.035, -0.045], [0.12, -0.035, -0.045])
+    m = len(perf.marker_names)
+    heel, toe, mt5 = foot = [perf.marker_names.index(n) for n in ("RHEE", "RTOE", "RMT5")]
+    points = np.vstack([points, ankle + [0.0, 0.0, 1.5]])  # a stray free point, far from the foot
     st = tracker.new_state(model, points[:m], t_ns(0))
     st.t_root_m, st.R_parent_segment = perf.root_position_m[0], R
     st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
@@ -391,21 +400,9 @@ def test_a_label_on_a_hidden_neighbours_point_is_put_back_by_the_free_point_thou
     completes the foot even with the fit's ankle 5 cm off (a skeleton fitting at 20-30 mm): the heel label
     takes its point and the toe label the free one, after SHAPE_CONFIRM checks. Correct labels are left
     alone, and so is the pair with the fit's ankle 30 cm off (a far-fetched triangle)."""
-    from protocol.skeleton import SEGMENTS
-    from service.calibration import world_transforms
-
-    perf = perform(3, duration_s=0.1)
-    m, k = len(perf.marker_names), SEGMENTS.index("r_foot")
+    perf, model, R, points, _ = _right_foot([-0.07, 0.0, -0.04], [0.14, 0.02, -0.045], [0.09, -0.04, -0.045])
+    m = len(perf.marker_names)
     heel, toe, mt5 = (perf.marker_names.index(n) for n in ("RHEE", "RTOE", "RMT5"))
-    off = perf.marker_offsets_m.copy()
-    off[heel], off[toe], off[mt5] = [-0.07, 0.0, -0.04], [0.14, 0.02, -0.045], [0.09, -0.04, -0.045]
-    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, off, perf.joint_offsets_m, True,
-                                 layout_offsets_m=off, layout_rms_m=np.full(m, 0.001))
-    R = Rotation.from_quat(perf.rotations_xyzw[0]).as_matrix()
-    Rs, ps = world_transforms(perf.root_position_m[0], R, perf.joint_offsets_m)
-    points = perf.recording.points_m[0].copy()
-    foot = [heel, toe, mt5]
-    points[foot] = off[foot] @ Rs[k].T + ps[k]
     right = np.arange(m)
     right[heel] = -1  # the heel hidden from the labels; its point is free
     wrong = right.copy()
