@@ -69,7 +69,9 @@ PARTNER_MIN_SAMPLES = 20  # a pair distance sampled fewer times cannot make two 
 LOOSE_SPREAD_M = 0.015  # partners misfitting more than this hand the prediction to a well-fitting skeleton
 SKELETON_TRUSTED_RMS_M = 0.015  # a skeleton fit with a lower RMS residual may predict markers
 CROSS_JOINT_DISAGREE_M = 0.12  # a hidden marker whose labeled partners are all on other segments is placed by a
-# well-fitting skeleton when they put it farther than this from it
+# well-fitting skeleton when they put it farther than this from it; with partners on its own segment,
+# farther than SAME_SEGMENT_DISAGREE_M (and it is searched for)
+SAME_SEGMENT_DISAGREE_M = 0.2
 MAX_GATE_FACTOR = 1.5  # re-acquisition gate at most this times reacquire_gate_m
 # ... and, once a skeleton is fitted, never more than this, however loose the partners and poor the fit:
 # a gate that grew with the partners' misfit to 20 cm around a hidden wrist marker took its neighbour's
@@ -110,6 +112,10 @@ SEARCH_INLIER_M = 0.012  # ... and a marker with a point this close to where the
 #: subject was lost) is looked for by its own layout, as a free rigid body whose joint lies this close to
 #: its bone's length from the grandparent joint (`_search_free_segment`).
 SEARCH_BONE_TOL_M = 0.05
+#: A segment with too few markers in view to be placed alone around its joint is placed with its child,
+#: unlabeled too, around the joint it puts the child's at: when the two place this many markers
+#: (`_down_the_chain`)
+CHAIN_MIN_MARKERS = 5
 RIVAL_JOINT_MARGIN_M = 0.05  # a search's points stay unassigned if a rival segment's joint fits within this of its own
 SHAPE_EVERY_FRAMES = 4  # segment layouts are checked on every this many frames
 SHAPE_LAYOUT_TOL_M = 0.02  # only markers that kept their offset in their segment this well [m] take part ...
@@ -568,49 +574,27 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
     |offset_i| (rotation-invariant); two such points, a pair if their distance matches the model's; the
     segment's rigid motion (Kabsch) from the joint, its labeled markers and the pair places every other
     marker, and the hypothesis placing most markers on points wins, if no other assignment does as well
-    (two mirror-image markers alone stay unfound)."""
+    (two mirror-image markers alone stay unfound). It must place three markers, labeled ones counted
+    (one lost marker of a segment with two labeled is placed where they and the joint put it). A segment
+    with too few markers in view to be placed is placed with its child (`_down_the_chain`); one whose
+    joint cannot pin it, by its layout alone (`_search_free_segment`)."""
     found: dict[int, int] = {}
     pw = _joints_m(model, st)
     observed = _observed_segments(model.marker_segment, labeled)
     pool = np.flatnonzero(cand)
     if len(pool) == 0:
         return found
-    seg_of, off = model.marker_segment, model.marker_offsets_m
-    for k in np.unique(seg_of[lost]):
+    seg_of = model.marker_segment
+    searched = np.unique(seg_of[lost])
+    for k in searched:
         idx = np.flatnonzero((seg_of == k) & st.ever_seen)
-        lab, los = idx[labeled[idx]], idx[lost[idx]]
-        o = pw[k]
-        reach = _norm(points[pool] - o)
-        within = reach < _norm(off[idx]).max() + SEARCH_JOINT_TOL_M
-        near, r_near = pool[within], reach[within]
-        options = {i: near[np.abs(r_near - _norm(off[i])) < SEARCH_JOINT_TOL_M] for i in los}
-        base_a = np.vstack([np.zeros((1, 3)), off[lab]])
-        base_b = np.vstack([o[None], cur[lab]])
-        hyps = []
-        if len(lab):  # one point with the joint and a labeled marker already fixes the segment
-            hyps += [((i, p),) for i in los for p in options[i]]
-        for a, i in enumerate(los):
-            for j in los[a + 1 :]:
-                d_model = _norm(off[i] - off[j])
-                for p in options[i]:
-                    for q in options[j]:
-                        if p != q and abs(_norm(points[p] - points[q]) - d_model) < SEARCH_PAIR_TOL_M:
-                            hyps.append(((i, p), (j, q)))
-        scored = []
-        for h in hyps:
-            mk = np.array([i for i, _ in h])
-            pt = np.array([p for _, p in h])
-            A, B = np.vstack([base_a, off[mk]]), np.vstack([base_b, points[pt]])
-            R, t = rigid_motion(A, B)
-            res = _norm(A @ R.T + t - B)
-            if res.max() > 2 * SEARCH_JOINT_TOL_M or res[1:].max() > 2 * SEARCH_INLIER_M:
-                continue
-            assignment = _placed(off, los, R, t, points, near)
-            assignment.update({int(i): int(p) for i, p in h})
-            if len(set(assignment.values())) < len(assignment):
-                continue
-            scored.append((len(assignment), float(np.sqrt(np.mean(res**2))), assignment))
-        assignment = _unambiguous(scored, 0, 3)
+        lab, los = idx[labeled[idx]], idx[lost[idx] & ~np.isin(idx, list(found))]
+        if len(los) == 0:
+            continue  # found with its parent (`_down_the_chain`)
+        scored = _around_joint(model, pw[k], lab, los, cur, points, pool)
+        assignment, below = _unambiguous(scored, 0, max(3 - len(lab), 1)), {}
+        if assignment is None and len(lab) == 0:
+            assignment, below = _down_the_chain(model, st, k, scored, labeled, lost, cur, points, pool)
         if assignment is None and len(lab) == 0:
             # the joint could not pin it (its parent moved unseen too, so the joint is where the fit left
             # it: a serving arm's forearm stayed unfound for 0.7 s): its layout alone. No joint to pin it:
@@ -618,12 +602,101 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
             # triangle matched (a foot's three were once matched to two of them and the shank's marker:
             # HDM05 at L3, T-pose mode)
             assignment = _unambiguous(_search_free_segment(model, pw, points, pool, los, k, observed), 1, 4)
-        if assignment and _rival_fits(model, pw, points, assignment, k, np.unique(seg_of[lost])):
+        if assignment and _rival_fits(model, pw, points, assignment, k, searched):
             assignment = None
         if assignment:
             found.update(assignment)
-            pool = pool[~np.isin(pool, list(assignment.values()))]
+            found.update(below)
+            pool = pool[~np.isin(pool, list(found.values()))]
     return found
+
+
+def _around_joint(model: SubjectModel, o: np.ndarray, lab: np.ndarray, los: np.ndarray, cur: np.ndarray,
+                  points: np.ndarray, pool: np.ndarray, refine: bool = False) -> list:
+    """Hypotheses (n placed, RMS, {marker: point}, R, t) for a segment whose joint is at `o`, labeled
+    markers `lab` (at `cur`) and lost ones `los`, among points `pool`: (R, t) its rigid motion."""
+    off = model.marker_offsets_m
+    reach = _norm(points[pool] - o)
+    within = reach < _norm(off[np.concatenate([lab, los])]).max() + SEARCH_JOINT_TOL_M
+    near, r_near = pool[within], reach[within]
+    options = {i: near[np.abs(r_near - _norm(off[i])) < SEARCH_JOINT_TOL_M] for i in los}
+    base_a = np.vstack([np.zeros((1, 3)), off[lab]])
+    base_b = np.vstack([o[None], cur[lab]])
+    hyps = []
+    if len(lab) >= 2:
+        # the joint and two labeled markers fix the segment, three labeled markers alone better (the joint
+        # is where the fit puts it, within its residual): one point where they put a lost marker is it
+        R, t = rigid_motion(base_a[1:], base_b[1:]) if len(lab) >= 3 else rigid_motion(base_a, base_b)
+        at = off[los] @ R.T + t
+        hyps += [((i, p),) for r, i in enumerate(los) for p in options[i] if _norm(points[p] - at[r]) < SEARCH_INLIER_M]
+    elif len(lab):  # one point with the joint and a labeled marker already fixes the segment
+        hyps += [((i, p),) for i in los for p in options[i]]
+    for a, i in enumerate(los):
+        for j in los[a + 1 :]:
+            d_model = _norm(off[i] - off[j])
+            for p in options[i]:
+                for q in options[j]:
+                    if p != q and abs(_norm(points[p] - points[q]) - d_model) < SEARCH_PAIR_TOL_M:
+                        hyps.append(((i, p), (j, q)))
+    scored = []
+    for h in hyps:
+        mk = np.array([i for i, _ in h])
+        pt = np.array([p for _, p in h])
+        A, B = np.vstack([base_a, off[mk]]), np.vstack([base_b, points[pt]])
+        R, t = rigid_motion(A, B)
+        res = _norm(A @ R.T + t - B)
+        if res.max() > 2 * SEARCH_JOINT_TOL_M or res[1:].max() > 2 * SEARCH_INLIER_M:
+            continue
+        assignment = _placed(off, los, R, t, points, near)
+        assignment.update({int(i): int(p) for i, p in h})
+        if len(set(assignment.values())) < len(assignment):
+            continue
+        rms = float(np.sqrt(np.mean(res**2)))
+        if refine and len(assignment) >= 3:
+            # the joint is only roughly where the parent's placement put it: the markers placed, alone, place
+            # the segment again
+            mk, pt = list(assignment), list(assignment.values())
+            R, t = rigid_motion(off[mk], points[pt])
+            assignment = _placed(off, los, R, t, points, near)
+            if len(assignment) < 3 or len(set(assignment.values())) < len(assignment):
+                continue
+            mk, pt = list(assignment), list(assignment.values())
+            rms = float(np.sqrt(np.mean(np.sum((off[mk] @ R.T + t - points[pt]) ** 2, 1))))
+        scored.append((len(assignment), rms, assignment, R, t))
+    return scored
+
+
+def _down_the_chain(model: SubjectModel, st: TrackState, k: int, scored: list, labeled: np.ndarray,
+                    lost: np.ndarray, cur: np.ndarray, points: np.ndarray, pool: np.ndarray
+                    ) -> tuple[dict[int, int] | None, dict[int, int]]:
+    """Segment k, none of whose markers is labeled, placed with its child: (k's {marker: point}, the
+    child's). Its joint is held but too few of its markers are in view to tell one placement from
+    another (an upper arm of two markers); each placement puts the child's joint (the elbow), around
+    which the child, unlabeled too, is searched. The combination placing most markers wins if no other
+    does about as well. (After a tennis serve a whole arm of six markers stayed unlabeled for 20 frames,
+    in view: both segments unobserved, the fit had left the elbow 15-30 cm off.)"""
+    seg_of = model.marker_segment
+    for c in np.flatnonzero(_PARENTS == k):
+        idx = np.flatnonzero((seg_of == c) & st.ever_seen)
+        los = idx[lost[idx]]
+        if len(los) < 2 or labeled[idx].any():
+            continue
+        combined = []
+        for n, rms, a, R, t in scored:
+            rest = pool[~np.isin(pool, list(a.values()))]
+            elbow = R @ model.joint_offsets_m[c] + t
+            for n2, rms2, a2, *_ in _around_joint(model, elbow, los[:0], los, cur, points, rest, True):
+                combined.append((n + n2, max(rms, rms2), a, a2))
+        # k's placement first, by the best combination each gives; then the child's under it, if it is
+        # as clear (its markers may slide: a finger's on a serving forearm)
+        combined.sort(key=lambda x: (-x[0], x[1]))
+        firsts = {}
+        for x in combined:
+            firsts.setdefault(tuple(sorted(x[2].items())), x)
+        mine = _unambiguous(list(firsts.values()), 0, CHAIN_MIN_MARKERS)
+        if mine is not None:
+            return mine, _unambiguous([(n, r, a2) for n, r, a, a2 in combined if a == mine], 0, CHAIN_MIN_MARKERS) or {}
+    return None, {}
 
 
 def _joint_residual(off: np.ndarray, o: np.ndarray, pts: np.ndarray) -> tuple[float, float]:
@@ -673,13 +746,13 @@ def _placed(off: np.ndarray, los: np.ndarray, R: np.ndarray, t: np.ndarray, poin
 
 
 def _unambiguous(scored: list, margin: int = 0, least: int = 3) -> dict[int, int] | None:
-    """The best of scored (n markers placed, RMS, assignment) hypotheses, if it places `least` markers or
+    """The best of scored (n markers placed, RMS, assignment, ...) hypotheses, if it places `least` markers or
     more and no other assignment places as many (less `margin`) about as well."""
     if not scored:
         return None
     scored.sort(key=lambda x: (-x[0], x[1]))
-    n, r, assignment = scored[0]
-    if n < least or any(n2 >= n - margin and a2 != assignment and r2 < 1.5 * r + 0.003 for n2, r2, a2 in scored[1:]):
+    n, r, assignment = scored[0][:3]
+    if n < least or any(n2 >= n - margin and a2 != assignment and r2 < 1.5 * r + 0.003 for n2, r2, a2, *_ in scored[1:]):
         return None
     return assignment
 
@@ -1210,24 +1283,33 @@ def step(
         gate_rigid = np.minimum(gate_rigid, MAX_RIGID_GATE_FACTOR * config.reacquire_gate_m)
     gate_missing = np.where(has_rigid, gate_rigid, 0.0)
     use_skel = np.zeros(m, bool)
-    if skel_pred is not None:
-        # the skeleton speaks for markers with no rigid partners in view, and for those whose partners
-        # have moved against each other since (spread), when the skeleton itself fits well
-        loose = has_rigid & (spread0 > LOOSE_SPREAD_M) & (residual < SKELETON_TRUSTED_RMS_M)
-        # and for those placed only by partners across a joint that put them far from it: partners learned
-        # while the joint held still (an upper-arm marker's torso partners in a standing seed) agree among
-        # themselves and place it where the arm was (24 cm off after a tennis serve, for a second)
-        # (where the fit has a word on the segment: it is observed, or held between an observed parent and
-        # child; a foot back before its leg is where the fit left it, and the segment search finds it)
+    # Markers placed by rigid partners that put them far from the skeleton, where the fit has a word on
+    # the segment (it is observed, or held between an observed parent and child; a foot back before its
+    # leg is where the fit left it, and the segment search finds it). Partners across a joint learned while
+    # it held still (an upper-arm marker's torso partners in a standing seed) agree among themselves and
+    # place it where the arm was (24 cm off after a tennis serve, for a second); partners on its own
+    # segment, when its last labeled point was another marker's (a serving forearm's marker, labeled on the
+    # elbow's point as the arm whipped past, was placed 42 cm off for 0.7 s). The latest fit judges, however
+    # old (the solve is skipped while partners place every hidden marker): these launch one, and are
+    # searched for.
+    stale = np.zeros(m, bool)
+    ref = skel_pred if skel_pred is not None else st.skel_pred_m
+    if ref is not None and (missing & has_rigid).any():
         p = np.maximum(st.partners, 0)
         seg = model.marker_segment
         same = (st.partners >= 0) & labeled[p] & (seg[p] == seg[:, None])
-        far = _norm(np.where(has_rigid[:, None], rpred, skel_pred) - skel_pred) > CROSS_JOINT_DISAGREE_M
+        off_skel = _norm(np.where(has_rigid[:, None], rpred, ref) - ref)
+        far = off_skel > np.where(same.any(1), SAME_SEGMENT_DISAGREE_M, CROSS_JOINT_DISAGREE_M)
         observed = _observed_segments(seg, labeled)
         child_seen = np.zeros(N_SEGMENTS, bool)
         child_seen[_PARENTS[observed & (_PARENTS >= 0)]] = True
         held = observed | (child_seen & (_PARENTS >= 0) & observed[np.maximum(_PARENTS, 0)])
-        loose |= has_rigid & ~same.any(1) & far & held[np.maximum(seg, 0)] & (residual < SKELETON_TRUSTED_RMS_M)
+        stale = missing & has_rigid & far & held[np.maximum(seg, 0)]
+    if skel_pred is not None:
+        # the skeleton speaks for markers with no rigid partners in view, and for those whose partners
+        # have moved against each other since (spread), or that they place far from it (above), when the
+        # skeleton itself fits well
+        loose = has_rigid & ((spread0 > LOOSE_SPREAD_M) | stale) & (residual < SKELETON_TRUSTED_RMS_M)
         use_skel = missing & (~has_rigid | loose)
         pred_missing[use_skel] = skel_pred[use_skel]
         # a marker long hidden with its neighbours left its segment unobserved: the fit has kept that
@@ -1292,7 +1374,7 @@ def step(
         seg = model.marker_segment
         observed = _observed_segments(seg, labeled)
         lost = ~labeled & st.ever_seen & (st.hidden_frames >= SEARCH_LOST_FRAMES) & (seg >= 0)
-        lost &= ~has_rigid | (spread0 > LOOSE_SPREAD_M) | ~observed[np.maximum(seg, 0)]
+        lost &= ~has_rigid | (spread0 > LOOSE_SPREAD_M) | ~observed[np.maximum(seg, 0)] | stale
         # the search hangs the segments from their joints where the last fit put them: a fit some frames
         # old (solves skipped) misplaces a fast limb's joint, and a serving arm's forearm searched around it
         # took the other hand's points (tennis at L3). Then a solve is launched on this frame and the search
@@ -1334,7 +1416,7 @@ def step(
     if model.has_skeleton and solver is not None:
         missing = ~labeled & st.ever_seen
         loose = (spread0 > LOOSE_SPREAD_M) & (st.fit_rms_m < SKELETON_TRUSTED_RMS_M)
-        if (missing & (~has_rigid | loose)).any() or st.search_waits or st.skipped >= min(config.max_skip_frames, config.max_skip_s / dt - 1e-6):
+        if (missing & (~has_rigid | loose | stale)).any() or st.search_waits or st.skipped >= min(config.max_skip_frames, config.max_skip_s / dt - 1e-6):
             launch = True
             st.skipped = 0
         else:

@@ -222,6 +222,67 @@ def test_a_forearm_whose_upper_arm_swung_too_is_found_by_its_layout():
     assert tracker._search_segments(model, st, far, far_free, labeled, cur, arm) == {}
 
 
+def test_an_upper_arm_of_two_markers_in_view_is_found_with_its_forearm_around_the_elbow_it_places():
+    """The whole arm swung while unlabeled, and one of the upper arm's three markers is hidden: the two
+    left and the shoulder (held by the trunk) cannot tell the upper arm's placement from its mirror image,
+    and the fit holds the elbow where it was, so the forearm cannot be searched around it. Each placement
+    of the upper arm puts the elbow somewhere; the forearm is found around the right one, and both are
+    labeled (a tennis player's serving arm stayed unlabeled for 20 frames, in view). With the forearm's
+    points gone, the two upper-arm points alone stay unlabeled."""
+    from protocol.skeleton import SEGMENTS
+
+    rng = np.random.default_rng(4)
+    turns = {"r_upperarm": ("x", 70), "r_forearm": ("y", 60)}
+    perf, model, st, old, now, _ = _turned_unseen(rng, turns)  # layouts unmeasured: no layout search
+    names = list(perf.marker_names)
+    arm = np.isin(perf.marker_segment, [SEGMENTS.index(name) for name in turns])
+    on_forearm = perf.marker_segment == SEGMENTS.index("r_forearm")
+    assert np.linalg.norm(now - old, axis=1)[on_forearm].min() > 0.1
+    labeled = ~arm
+    cur = np.where(labeled[:, None], now, np.nan)
+    in_view = np.ones(len(now), bool)
+    in_view[names.index("RSHO")] = False
+    ghosts = now[arm] + rng.normal(0.0, 0.05, (arm.sum(), 3))
+    points = np.concatenate([now[in_view], ghosts])
+    truth = np.concatenate([np.flatnonzero(in_view), np.full(len(ghosts), -2)])
+    free = np.concatenate([arm[in_view], np.ones(len(ghosts), bool)])
+
+    found = tracker._search_segments(model, st, points, free, labeled, cur, arm)
+    expected = {i for i in np.flatnonzero(arm) if in_view[i]}
+    assert set(found) == expected and all(truth[p] == i for i, p in found.items())
+    upper_only = free & ~np.isin(truth, np.flatnonzero(on_forearm))
+    assert tracker._search_segments(model, st, points, upper_only, labeled, cur, arm) == {}
+
+
+def test_a_lost_marker_is_found_where_its_segments_labeled_markers_and_joint_put_it():
+    """A forearm marker lost while the others stay labeled (its partners place it far off: its last labeled
+    point was another marker's): the elbow and two labeled markers fix the forearm, and the one point where
+    they put it is it; not a ghost a few centimetres from there, however well it matches its distance from
+    the elbow."""
+    from protocol.skeleton import SEGMENTS
+
+    rng = np.random.default_rng(3)
+    perf, model, st, old, now, _ = _turned_unseen(rng, {})
+    names = list(perf.marker_names)
+    on_forearm = perf.marker_segment == SEGMENTS.index("r_forearm")
+    i = names.index("RWRA")
+    lost = np.zeros(len(now), bool)
+    lost[i] = True
+    labeled = ~lost
+    cur = np.where(labeled[:, None], now, np.nan)
+    elbow = tracker._joints_m(model, st)[SEGMENTS.index("r_forearm")]
+    r = now[i] - elbow
+    ghost = elbow + Rotation.from_rotvec(0.2 * np.cross(r, [0.0, 0.0, 1.0]) / np.linalg.norm(r)).apply(r)  # as far from the elbow
+    assert 0.03 < np.linalg.norm(ghost - now[i]) < 0.06 and on_forearm.sum() >= 3
+    points = np.concatenate([now, ghost[None]])
+    free = np.zeros(len(points), bool)
+    free[[i, len(now)]] = True
+
+    assert tracker._search_segments(model, st, points, free, labeled, cur, lost) == {i: i}
+    free[i] = False
+    assert tracker._search_segments(model, st, points, free, labeled, cur, lost) == {}
+
+
 def test_a_forearm_swung_out_of_reach_of_where_the_fit_left_its_elbow_is_found_by_its_layout():
     """The arm swung far while its forearm was unlabeled (a serve), and the fit still holds the elbow where
     it was: not one free point lies within the forearm's reach of that joint, so the search around it has
