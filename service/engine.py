@@ -387,6 +387,7 @@ class Engine:
             s.model = dataclasses.replace(s.model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints,
                                           has_skeleton=True, layout_offsets_m=off, layout_rms_m=layout)
             s.state.t_root_m, s.state.R_parent_segment = t_root, R
+            tracker.learn_layout_trust(s.model, s.state, np.stack(s.history))
             # bring the calibration pose (of a frame CALIBRATE_APPLY_S back) up to now on the latest
             # labels: several solves, as one of max_steps iterations can stop short of a limb that moved
             last = s.history[-1]

@@ -1037,9 +1037,33 @@ def _relabellings(n: int, s: int | None = None) -> np.ndarray:
     return np.array(maps, dtype=int)
 
 
-def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, point_index: np.ndarray, cur: np.ndarray) -> np.ndarray:
+def _count_layout_fits(st: TrackState, ks: np.ndarray, fits: np.ndarray) -> np.ndarray:
+    """Fold one check of segments `ks` (whether their labels fit their layouts) into the running share of
+    checks that fit; returns the share before it."""
+    share = st.shape_fit[ks]
+    st.shape_checks[ks] += 1
+    alpha = np.maximum(1.0 / st.shape_checks[ks], SHAPE_FIT_ALPHA)  # a plain mean first, then a running one
+    st.shape_fit[ks] = share + alpha * (fits - share)
+    return share
+
+
+def learn_layout_trust(model: SubjectModel, st: TrackState, history_m: np.ndarray) -> None:
+    """Count how often each segment's labels fit its new layout over the labeled frames (F, M, 3) it was
+    calibrated from, as the checks of `_relabel_by_shape` would have: a calibration that lands after a seed
+    (at 50 Hz, 2 s of labels are 100 frames) would otherwise start with no layout trusted."""
+    idx = np.arange(model.n_markers)
+    for frame in history_m[::SHAPE_EVERY_FRAMES]:
+        labeled = np.isfinite(frame[:, 0])
+        _relabel_by_shape(model, st, frame, np.where(labeled, idx, -1), frame, given=True)
+
+
+def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, point_index: np.ndarray, cur: np.ndarray,
+                      given: bool = False) -> np.ndarray:
     """Permute the labels within a segment when its calibrated marker layout says they are permuted.
-    In place; returns the markers whose point changed.
+    In place; returns the markers whose point changed. With `given` labels (`observe`), only count how
+    often each segment's labels fit its layout: a layout trusted by the end of a seed can undo a swap
+    right after it (a tennis player's wrist labels swapped in the serve, 0.4 s after the seed, and stayed
+    swapped for 40 frames while the forearm's layout earned its trust).
 
     Markers of one segment keep their offsets; a wrist-and-finger triad or a foot's markers permuted by a
     fast pass or a re-acquisition after occlusion keep being tracked permuted, and the long-run partner
@@ -1082,6 +1106,9 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     can_clear = (n_lab >= SHAPE_CLEAR_MIN_LABELS) & (typical <= SHAPE_CLEAR_LAYOUT_M)
     tol = np.where(can_clear, np.minimum(SHAPE_MIN_RMS_M, np.maximum(SHAPE_FIT_FLOOR_M, 4.0 * typical)), SHAPE_MIN_RMS_M)
     fits = rms0 <= tol
+    if given:
+        _count_layout_fits(st, ks, fits)
+        return changed
     if st.shape_votes:
         for k in ks[fits]:
             st.shape_votes.pop(int(k), None)
@@ -1142,10 +1169,7 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
             st.shape_votes.pop(int(ks[r]), None)
     # A layout to be trusted fits the labels, or a permutation of them, on most checks; one that seldom
     # does was calibrated wrong (from a pose that hid which markers move together): it is left alone.
-    share = st.shape_fit[ks]
-    st.shape_checks[ks] += 1
-    alpha = np.maximum(1.0 / st.shape_checks[ks], SHAPE_FIT_ALPHA)  # a plain mean first, then a running one
-    st.shape_fit[ks] = share + alpha * (fits - share)
+    share = _count_layout_fits(st, ks, fits)
     trusted = (share >= SHAPE_TRUSTED_SHARE) & (st.shape_checks[ks] > SHAPE_MIN_CHECKS)
     for r, new_labels in proposals.items():
         if not trusted[r]:
@@ -1474,6 +1498,8 @@ def observe(
     rpred, _ = rigid_predictions(st, cur, labeled, missing)
     skel_pred = _skeleton_now(st, t_ns, dt) if model.has_skeleton else None
     fallback = np.where(np.isfinite(rpred[:, :1]), rpred, st.pos_m if skel_pred is None else skel_pred)
+    if model.has_skeleton and st.frames % SHAPE_EVERY_FRAMES == 0:
+        _relabel_by_shape(model, st, cur, np.where(labeled, np.arange(len(cur)), -1), cur, given=True)
     _commit(st, cur, labeled, fallback, t_ns, dt)
     solved = False
     if model.has_skeleton and solver is not None and st.skipped >= min(config.max_skip_frames, 2):

@@ -388,6 +388,30 @@ def test_labels_permuted_within_a_segment_are_put_back_by_its_layout(segment, fi
     assert set(np.flatnonzero(changed)) == set(fore[:3])
 
 
+def test_layouts_are_trusted_from_the_frames_they_were_calibrated_from():
+    """A calibration that lands after the seed starts with every segment's layout trusted where the
+    labeled history fits it, so a swap right after it can be undone (a tennis serve at 50 Hz swapped the
+    wrist labels 0.4 s after the seed, and they stayed swapped 40 frames while the layout earned trust);
+    not a segment whose labels in the history misfit it (a layout calibrated wrong)."""
+    from protocol.skeleton import SEGMENTS
+
+    perf = perform(3, duration_s=1.0)
+    m = len(perf.marker_names)
+    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
+                                 perf.joint_offsets_m, True, layout_offsets_m=perf.marker_offsets_m,
+                                 layout_rms_m=np.full(m, 0.002))
+    history = perf.recording.points_m[:80].copy()
+    st = tracker.new_state(model, history[-1], t_ns(0))
+    assert not tracker._trusted_layouts(st).any()
+    fore = np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
+    history[:, fore[:2]] = history[:, fore[[1, 0]]]  # two forearm labels swapped all along
+    tracker.learn_layout_trust(model, st, history)
+    trusted = tracker._trusted_layouts(st)
+    for k in (SEGMENTS.index(name) for name in ("pelvis", "torso", "head", "l_forearm", "r_foot", "l_foot")):
+        assert trusted[k], SEGMENTS[k]
+    assert not trusted[SEGMENTS.index("r_forearm")]
+
+
 def _right_foot(heel_m, toe_m, mt5_m):
     """A synthetic performer's first frame with its right foot's heel, toe and fifth metatarsal markers
     moved to these offsets (its layout, calibrated to 1 mm): (perf, model, R_parent_segment, points,
