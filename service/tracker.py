@@ -116,6 +116,7 @@ SEARCH_BONE_TOL_M = 0.05
 #: unlabeled too, around the joint it puts the child's at: when the two place this many markers
 #: (`_down_the_chain`)
 CHAIN_MIN_MARKERS = 5
+CHAIN_JOINT_TOL_M = 0.06  # ... the segment's markers within this of their distance from its joint
 RIVAL_JOINT_MARGIN_M = 0.05  # a search's points stay unassigned if a rival segment's joint fits within this of its own
 SHAPE_EVERY_FRAMES = 4  # segment layouts are checked on every this many frames
 SHAPE_LAYOUT_TOL_M = 0.02  # only markers that kept their offset in their segment this well [m] take part ...
@@ -594,7 +595,7 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
         scored = _around_joint(model, pw[k], lab, los, cur, points, pool)
         assignment, below = _unambiguous(scored, 0, max(3 - len(lab), 1)), {}
         if assignment is None and len(lab) == 0:
-            assignment, below = _down_the_chain(model, st, k, scored, labeled, lost, cur, points, pool)
+            assignment, below = _down_the_chain(model, st, k, labeled, lost, cur, points, pool)
         if assignment is None and len(lab) == 0:
             # the joint could not pin it (its parent moved unseen too, so the joint is where the fit left
             # it: a serving arm's forearm stayed unfound for 0.7 s): its layout alone. No joint to pin it:
@@ -612,14 +613,14 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
 
 
 def _around_joint(model: SubjectModel, o: np.ndarray, lab: np.ndarray, los: np.ndarray, cur: np.ndarray,
-                  points: np.ndarray, pool: np.ndarray, refine: bool = False) -> list:
+                  points: np.ndarray, pool: np.ndarray, refine: bool = False, tol_m: float = SEARCH_JOINT_TOL_M) -> list:
     """Hypotheses (n placed, RMS, {marker: point}, R, t) for a segment whose joint is at `o`, labeled
     markers `lab` (at `cur`) and lost ones `los`, among points `pool`: (R, t) its rigid motion."""
     off = model.marker_offsets_m
     reach = _norm(points[pool] - o)
-    within = reach < _norm(off[np.concatenate([lab, los])]).max() + SEARCH_JOINT_TOL_M
+    within = reach < _norm(off[np.concatenate([lab, los])]).max() + tol_m
     near, r_near = pool[within], reach[within]
-    options = {i: near[np.abs(r_near - _norm(off[i])) < SEARCH_JOINT_TOL_M] for i in los}
+    options = {i: near[np.abs(r_near - _norm(off[i])) < tol_m] for i in los}
     base_a = np.vstack([np.zeros((1, 3)), off[lab]])
     base_b = np.vstack([o[None], cur[lab]])
     hyps = []
@@ -645,7 +646,7 @@ def _around_joint(model: SubjectModel, o: np.ndarray, lab: np.ndarray, los: np.n
         A, B = np.vstack([base_a, off[mk]]), np.vstack([base_b, points[pt]])
         R, t = rigid_motion(A, B)
         res = _norm(A @ R.T + t - B)
-        if res.max() > 2 * SEARCH_JOINT_TOL_M or res[1:].max() > 2 * SEARCH_INLIER_M:
+        if res.max() > 2 * tol_m or res[1:].max() > 2 * SEARCH_INLIER_M:
             continue
         assignment = _placed(off, los, R, t, points, near)
         assignment.update({int(i): int(p) for i, p in h})
@@ -666,7 +667,7 @@ def _around_joint(model: SubjectModel, o: np.ndarray, lab: np.ndarray, los: np.n
     return scored
 
 
-def _down_the_chain(model: SubjectModel, st: TrackState, k: int, scored: list, labeled: np.ndarray,
+def _down_the_chain(model: SubjectModel, st: TrackState, k: int, labeled: np.ndarray,
                     lost: np.ndarray, cur: np.ndarray, points: np.ndarray, pool: np.ndarray
                     ) -> tuple[dict[int, int] | None, dict[int, int]]:
     """Segment k, none of whose markers is labeled, placed with its child: (k's {marker: point}, the
@@ -676,16 +677,24 @@ def _down_the_chain(model: SubjectModel, st: TrackState, k: int, scored: list, l
     does about as well. (After a tennis serve a whole arm of six markers stayed unlabeled for 20 frames,
     in view: both segments unobserved, the fit had left the elbow 15-30 cm off.)"""
     seg_of = model.marker_segment
+    mine_idx = np.flatnonzero((seg_of == k) & st.ever_seen)
+    scored = None
     for c in np.flatnonzero(_PARENTS == k):
         idx = np.flatnonzero((seg_of == c) & st.ever_seen)
         los = idx[lost[idx]]
         if len(los) < 2 or labeled[idx].any():
             continue
+        if scored is None:
+            # the joint may be off by more than a search around it allows (a shoulder raised overhead in a
+            # serve slides against the trunk markers that hold it): k is placed within a wider reach, and
+            # the child confirms
+            scored = _around_joint(model, _joints_m(model, st)[k], mine_idx[:0], mine_idx[lost[mine_idx]], cur,
+                                   points, pool, tol_m=CHAIN_JOINT_TOL_M)
         combined = []
         for n, rms, a, R, t in scored:
             rest = pool[~np.isin(pool, list(a.values()))]
             elbow = R @ model.joint_offsets_m[c] + t
-            for n2, rms2, a2, *_ in _around_joint(model, elbow, los[:0], los, cur, points, rest, True):
+            for n2, rms2, a2, *_ in _around_joint(model, elbow, los[:0], los, cur, points, rest, True, CHAIN_JOINT_TOL_M):
                 combined.append((n + n2, max(rms, rms2), a, a2))
         # k's placement first, by the best combination each gives; then the child's under it, if it is
         # as clear (its markers may slide: a finger's on a serving forearm)

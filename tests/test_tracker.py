@@ -227,8 +227,9 @@ def test_an_upper_arm_of_two_markers_in_view_is_found_with_its_forearm_around_th
     left and the shoulder (held by the trunk) cannot tell the upper arm's placement from its mirror image,
     and the fit holds the elbow where it was, so the forearm cannot be searched around it. Each placement
     of the upper arm puts the elbow somewhere; the forearm is found around the right one, and both are
-    labeled (a tennis player's serving arm stayed unlabeled for 20 frames, in view). With the forearm's
-    points gone, the two upper-arm points alone stay unlabeled."""
+    labeled (a tennis player's serving arm stayed unlabeled for 20 frames, in view), also with the shoulder
+    slid a few centimetres from where the trunk puts it. With the forearm's points gone, the two upper-arm
+    points alone stay unlabeled."""
     from protocol.skeleton import SEGMENTS
 
     rng = np.random.default_rng(4)
@@ -252,6 +253,12 @@ def test_an_upper_arm_of_two_markers_in_view_is_found_with_its_forearm_around_th
     assert set(found) == expected and all(truth[p] == i for i, p in found.items())
     upper_only = free & ~np.isin(truth, np.flatnonzero(on_forearm))
     assert tracker._search_segments(model, st, points, upper_only, labeled, cur, arm) == {}
+    # the shoulder slid 4.5 cm against the trunk markers that hold its joint (an arm raised overhead):
+    # beyond a search around the joint, not beyond the arm's
+    slid = points.copy()
+    slid[np.isin(truth, np.flatnonzero(arm))] += [0.0, 0.0, 0.045]
+    found = tracker._search_segments(model, st, slid, free, labeled, cur, arm)
+    assert set(found) == expected and all(truth[p] == i for i, p in found.items())
 
 
 def test_a_lost_marker_is_found_where_its_segments_labeled_markers_and_joint_put_it():
