@@ -121,7 +121,8 @@ RIVAL_JOINT_MARGIN_M = 0.05  # a search's points stay unassigned if a rival segm
 SHAPE_EVERY_FRAMES = 4  # segment layouts are checked on every this many frames
 SHAPE_LAYOUT_TOL_M = 0.02  # only markers that kept their offset in their segment this well [m] take part ...
 SHAPE_MIN_RMS_M = 0.012  # a segment whose labels fit its calibrated marker layout this well is not re-checked ...
-SHAPE_FIT_FLOOR_M = 0.004  # ... nor one fitting it within 4x its markers' own layout residual (not under this)
+SHAPE_FIT_FACTOR = 4.0  # ... nor one fitting it within this times its markers' own layout residual ...
+SHAPE_FIT_FLOOR_M = 0.004  # ... (not under this)
 SHAPE_GAIN = 0.5  # labels of a segment are permuted when that fits its layout under this times as badly ...
 SHAPE_GOOD_RMS_M = 0.015  # ... and as well as true labels do [m] RMS
 SHAPE_DISTINCT_M = 0.03  # ... and only relabellings that move the layout's own markers this far [m] RMS ...
@@ -132,6 +133,11 @@ SHAPE_DISTINCT_M = 0.03  # ... and only relabellings that move the layout's own 
 SHAPE_CLEAR_MIN_M = 0.006
 SHAPE_CLEAR_MIN_LABELS = 3
 SHAPE_CLEAR_LAYOUT_M = 0.0025
+# ... or within SHAPE_CLEAR_HANDOVER_LAYOUT_M for a relabelling that hands a label to an unlabeled marker (a
+# toe label on the fifth metatarsal's point of a foot calibrated to 4 mm: 12-15 mm misfit, 4 mm handed over,
+# 85_02 at L2, for 1.5 s; among labeled markers alone, a wrist pair 6-11 mm apart in a 4 mm layout was
+# swapped wrongly, 135_02 at L3)
+SHAPE_CLEAR_HANDOVER_LAYOUT_M = 0.0045
 SHAPE_CLEAR_SHARE = 0.6
 SHAPE_CLEAR_FIT_M = 0.002
 # `_reseat_outliers`: a segment with this many labels or more whose labels misfit its layout by this times
@@ -1112,8 +1118,9 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     # label on the fifth metatarsal's point pass (10 mm, 85_12 at L2) for 1.6 s.
     # (only where a relabelling could then be taken on clear evidence, below: checking the others costs time)
     typical = np.sqrt(np.bincount(row, model.layout_rms_m[members] ** 2, minlength=len(ks)) / n_lab)
-    can_clear = (n_lab >= SHAPE_CLEAR_MIN_LABELS) & (typical <= SHAPE_CLEAR_LAYOUT_M)
-    tol = np.where(can_clear, np.minimum(SHAPE_MIN_RMS_M, np.maximum(SHAPE_FIT_FLOOR_M, 4.0 * typical)), SHAPE_MIN_RMS_M)
+    can_clear = (n_lab >= SHAPE_CLEAR_MIN_LABELS) & (typical <= SHAPE_CLEAR_HANDOVER_LAYOUT_M)
+    tight = typical <= SHAPE_CLEAR_LAYOUT_M
+    tol = np.where(can_clear, np.minimum(SHAPE_MIN_RMS_M, np.maximum(SHAPE_FIT_FLOOR_M, SHAPE_FIT_FACTOR * typical)), SHAPE_MIN_RMS_M)
     fits = rms0 <= tol
     if given:
         _count_layout_fits(st, ks, fits)
@@ -1163,7 +1170,8 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
         # 10 mm misfit, 0.4 mm relabelled; 85_12 at L2). Not with two labels: they match one distance, and a
         # head band's sides and diagonals offer several.
         clear = (
-            can_clear[r] & (symmetric_rms >= SHAPE_CLEAR_MIN_M) & (rms0[r] >= SHAPE_CLEAR_SHARE * symmetric_rms)
+            can_clear[r] & (tight[r] | (maps >= len(lab)).any(1)) & (symmetric_rms >= SHAPE_CLEAR_MIN_M)
+            & (rms0[r] >= SHAPE_CLEAR_SHARE * symmetric_rms)
             & (rms <= max(SHAPE_CLEAR_FIT_M, 2.0 * typical[r]))
         )
         rms = np.where(((symmetric_rms < SHAPE_DISTINCT_M) & ~clear) | blocked, np.inf, rms)
