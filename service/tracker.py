@@ -1064,8 +1064,9 @@ def _count_layout_fits(st: TrackState, ks: np.ndarray, fits: np.ndarray) -> np.n
 
 def learn_layout_trust(model: SubjectModel, st: TrackState, history_m: np.ndarray) -> None:
     """Count how often each segment's labels fit its new layout over the labeled frames (F, M, 3) it was
-    calibrated from, as the checks of `_relabel_by_shape` would have: a calibration that lands after a seed
-    (at 50 Hz, 2 s of labels are 100 frames) would otherwise start with no layout trusted."""
+    calibrated from (every SHAPE_EVERY_FRAMES-th), as the checks of `_relabel_by_shape` would have: a
+    calibration that lands after a seed (at 50 Hz, 2 s of labels are 100 frames) would otherwise start with
+    no layout trusted. `observe` counts each given frame it checks the same way."""
     idx = np.arange(model.n_markers)
     for frame in history_m[::SHAPE_EVERY_FRAMES]:
         labeled = np.isfinite(frame[:, 0])
@@ -1516,7 +1517,7 @@ def observe(
     skel_pred = _skeleton_now(st, t_ns, dt) if model.has_skeleton else None
     fallback = np.where(np.isfinite(rpred[:, :1]), rpred, st.pos_m if skel_pred is None else skel_pred)
     if model.has_skeleton and st.frames % SHAPE_EVERY_FRAMES == 0:
-        _relabel_by_shape(model, st, cur, np.where(labeled, np.arange(len(cur)), -1), cur, given=True)
+        learn_layout_trust(model, st, cur[None])
     _commit(st, cur, labeled, fallback, t_ns, dt)
     solved = False
     if model.has_skeleton and solver is not None and st.skipped >= min(config.max_skip_frames, 2):

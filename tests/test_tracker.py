@@ -352,6 +352,15 @@ def test_kabsch_rms_matches_a_kabsch_by_svd():
     np.testing.assert_allclose(tracker._kabsch_rms(A, B, w), want, atol=1e-9)
 
 
+def _checked(layout_check, points: np.ndarray, point_index: np.ndarray) -> np.ndarray:
+    """Run one of the tracker's layout checks, `layout_check(point_index, cur)`, which relabels in place;
+    the positions it was given must follow the labels it leaves. Returns the markers whose point changed."""
+    cur = tracker._gather(points, point_index)
+    changed = layout_check(point_index, cur)
+    np.testing.assert_array_equal(cur, tracker._gather(points, point_index))
+    return changed
+
+
 @pytest.mark.parametrize("segment, first", [("r_forearm", 1), ("r_foot", 0)])
 def test_labels_permuted_within_a_segment_are_put_back_by_its_layout(segment, first):
     """Three labels of a segment cycled among their points (a wrist triad after a fast pass; a foot's heel,
@@ -376,10 +385,7 @@ def test_labels_permuted_within_a_segment_are_put_back_by_its_layout(segment, fi
     wrong[fore[:3]] = right[fore[[1, 2, 0]]]  # the wrist pair and the finger marker 8-11 cm apart; the foot's up to 20 cm
 
     def check(point_index, model=model):
-        cur = points[point_index]
-        changed = tracker._relabel_by_shape(model, st, points, point_index, cur)
-        np.testing.assert_array_equal(cur, points[point_index])
-        return changed
+        return _checked(lambda idx, cur: tracker._relabel_by_shape(model, st, points, idx, cur), points, point_index)
 
     idx = right.copy()
     assert not check(idx).any() and (idx == right).all()
@@ -462,10 +468,7 @@ def test_two_labels_swapped_on_a_mirror_symmetric_foot_are_put_back_by_its_joint
         cand = np.ones(len(points), bool)
         cand[point_index[point_index >= 0]] = False
         cand[heel] = free
-        cur = tracker._gather(points, point_index)
-        changed = tracker._complete_by_free_point(model, st, points, cand, point_index, cur)
-        np.testing.assert_array_equal(cur, tracker._gather(points, point_index))
-        return changed
+        return _checked(lambda idx, cur: tracker._complete_by_free_point(model, st, points, cand, idx, cur), points, point_index)
 
     idx = right.copy()
     for _ in range(tracker.SHAPE_CONFIRM + 1):
@@ -551,10 +554,7 @@ def test_a_wrist_label_on_the_waist_markers_point_is_reseated_where_its_forearm_
 
     def check(point_index):
         cand = np.zeros(len(points), bool)
-        cur = tracker._gather(points, point_index)
-        changed = tracker._reseat_outliers(model, st, points, cand, point_index, cur)
-        np.testing.assert_array_equal(cur, tracker._gather(points, point_index))
-        return changed
+        return _checked(lambda idx, cur: tracker._reseat_outliers(model, st, points, cand, idx, cur), points, point_index)
 
     idx = right.copy()
     for _ in range(tracker.SHAPE_CONFIRM + 1):
