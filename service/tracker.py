@@ -442,13 +442,13 @@ def _gather(points: np.ndarray, point_index: np.ndarray) -> np.ndarray:
     return out
 
 
-def _unswap(point_index: np.ndarray, cur: np.ndarray, pred: np.ndarray, err: np.ndarray, tol_m: float) -> None:
+def _unswap(point_index: np.ndarray, cur: np.ndarray, pred: np.ndarray, err: np.ndarray, tol_m: float) -> bool:
     """Swap the labels of two markers when each sits where the other is predicted (markers that passed
     close to each other and were tracked through crossed): crossed distances under half the straight
-    ones. In place."""
+    ones. In place; True if any pair was swapped."""
     sus = np.flatnonzero((err > tol_m) & (point_index >= 0))
     if len(sus) < 2:
-        return
+        return False
     # all pairs at once (a poor fit can make a dozen suspects); the best pairs are taken greedily
     d = _norm(cur[sus][None, :, :] - pred[sus][:, None, :])  # d[a, b] = |cur[b] - pred[a]|
     crossed = d + d.T
@@ -456,7 +456,7 @@ def _unswap(point_index: np.ndarray, cur: np.ndarray, pred: np.ndarray, err: np.
     ok = crossed < 0.5 * straight
     np.fill_diagonal(ok, False)
     if not ok.any():
-        return
+        return False
     score = np.where(ok, crossed / straight, np.inf)
     for flat in np.argsort(score, axis=None)[: int(ok.sum())]:
         a, b = divmod(int(flat), len(sus))
@@ -466,6 +466,7 @@ def _unswap(point_index: np.ndarray, cur: np.ndarray, pred: np.ndarray, err: np.
         point_index[i], point_index[k] = point_index[k], point_index[i]
         cur[[i, k]] = cur[[k, i]]
         err[i] = err[k] = 0.0
+    return True
 
 
 def _unsure_on_unseen_segment(model: SubjectModel, labeled: np.ndarray, rows: np.ndarray, cur: np.ndarray,
@@ -1279,13 +1280,15 @@ def step(
     has_rigid = np.isfinite(rpred[:, 0])
     spread0 = np.where(has_rigid, spread, 0.0)
     err = np.where(labeled & has_rigid, _norm(cur - rpred), 0.0)
-    _unswap(point_index, cur, rpred, err, config.rigid_check_m)
+    changed = _unswap(point_index, cur, rpred, err, config.rigid_check_m)
     if st.frames % REPAIR_EVERY_FRAMES == REPAIR_EVERY_FRAMES // 2:
         _repair_by_distances(st, point_index, cur, points, ~taken)
         taken = ~free.copy()
         taken[point_index[point_index >= 0]] = True
-    labeled = point_index >= 0
-    err = np.where(labeled & has_rigid, _norm(cur - rpred), 0.0)
+        changed = True
+    if changed:  # (else every label and its error stand as computed)
+        labeled = point_index >= 0
+        err = np.where(labeled & has_rigid, _norm(cur - rpred), 0.0)
     tol = config.rigid_check_m + 4.0 * spread0
     bad = labeled & has_rigid & (err > tol)
     # A re-acquired label is on probation: its distances to its partners are held to the long-run norm for
@@ -1334,19 +1337,22 @@ def step(
     # elbow's point as the arm whipped past, was placed 42 cm off for 0.7 s). The latest fit judges, however
     # old (the solve is skipped while partners place every hidden marker): these launch one, and are
     # searched for.
+    # (computed on the few hidden markers partners place, not on all: it runs on most frames)
     stale = np.zeros(m, bool)
     ref = skel_pred if skel_pred is not None else st.skel_pred_m
-    if ref is not None and (missing & has_rigid).any():
-        p = np.maximum(st.partners, 0)
+    placed = np.flatnonzero(missing & has_rigid)
+    if ref is not None and len(placed):
         seg = model.marker_segment
-        same = (st.partners >= 0) & labeled[p] & (seg[p] == seg[:, None])
-        off_skel = _norm(np.where(has_rigid[:, None], rpred, ref) - ref)
-        far = off_skel > np.where(same.any(1), SAME_SEGMENT_DISAGREE_M, CROSS_JOINT_DISAGREE_M)
-        observed = _observed_segments(seg, labeled)
-        child_seen = np.zeros(N_SEGMENTS, bool)
-        child_seen[_PARENTS[observed & (_PARENTS >= 0)]] = True
-        held = observed | (child_seen & (_PARENTS >= 0) & observed[np.maximum(_PARENTS, 0)])
-        stale = missing & has_rigid & far & held[np.maximum(seg, 0)]
+        part = st.partners[placed]
+        p = np.maximum(part, 0)
+        same = ((part >= 0) & labeled[p] & (seg[p] == seg[placed, None])).any(1)
+        far = _norm(rpred[placed] - ref[placed]) > np.where(same, SAME_SEGMENT_DISAGREE_M, CROSS_JOINT_DISAGREE_M)
+        if far.any():
+            observed = _observed_segments(seg, labeled)
+            child_seen = np.zeros(N_SEGMENTS, bool)
+            child_seen[_PARENTS[observed & (_PARENTS >= 0)]] = True
+            held = observed | (child_seen & (_PARENTS >= 0) & observed[np.maximum(_PARENTS, 0)])
+            stale[placed[far]] = held[np.maximum(seg[placed[far]], 0)]
     if skel_pred is not None:
         # the skeleton speaks for markers with no rigid partners in view, and for those whose partners
         # have moved against each other since (spread), or that they place far from it (above), when the
