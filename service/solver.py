@@ -83,8 +83,13 @@ def _model_markers_jvp(primals, tangents):
     return pred, dx[:3] + jnp.cross(w, pred) - c
 
 
-@functools.partial(jax.jit, static_argnames=("max_steps",))
-def _solve(t0, base_R, joint_offsets, marker_segment, marker_offsets, observed, mask, weight, prior_w, rtol, atol, max_steps):
+@functools.partial(jax.jit, static_argnames=("rtol", "atol", "max_steps"))
+def _solve(start, joint_offsets, marker_segment, marker_offsets, observed, weight, prior_w, rtol, atol, max_steps):
+    # (the start pose comes as one array, t0 then R0; observed markers as (M, 3) with NaN where unobserved:
+    # each argument is a host-to-device transfer, and the launch's dispatch cost grows with their number)
+    t0, base_R = start[:3], start[3:].reshape(N_SEGMENTS, 3, 3)
+    mask = jnp.isfinite(observed[:, 0])
+
     def fn(x, _):
         pred = _model_markers(x, base_R, joint_offsets, marker_segment, marker_offsets)
         r = jnp.where(mask[:, None], (pred - jnp.where(mask[:, None], observed, 0.0)) * weight[:, None], 0.0)
@@ -103,7 +108,8 @@ def _solve(t0, base_R, joint_offsets, marker_segment, marker_offsets, observed, 
     pred = marker_positions(Rs, ps, marker_segment, marker_offsets)
     err2 = jnp.where(mask, jnp.sum((pred - jnp.where(mask[:, None], observed, 0.0)) ** 2, axis=1), 0.0)
     rms = jnp.sqrt(jnp.sum(err2) / jnp.maximum(jnp.sum(mask), 1))
-    return t, R, pred, rms, sol.stats["num_steps"], ok
+    # one array back (t, R, pred, rms, steps, ok), for one device-to-host transfer instead of six
+    return jnp.concatenate([t, R.reshape(-1), pred.reshape(-1), jnp.stack([rms, sol.stats["num_steps"], ok]).astype(t.dtype)])
 
 
 @functools.partial(jax.jit)
@@ -122,14 +128,15 @@ class PendingFit:
 
     def result(self) -> FitResult:
         if self._result is None:
-            t, R, pred, rms, steps, ok = self._outputs
+            out = np.asarray(self._outputs)
+            n_r = 3 + 9 * N_SEGMENTS
             self._result = FitResult(
-                t_world_root_m=np.asarray(t),
-                R_parent_segment=np.asarray(R),
-                predicted_m=np.asarray(pred)[: self._m],
-                residual_rms_m=float(rms),
-                iterations=int(steps),
-                ok=bool(ok),
+                t_world_root_m=out[:3].copy(),
+                R_parent_segment=out[3:n_r].reshape(N_SEGMENTS, 3, 3).copy(),
+                predicted_m=out[n_r:-3].reshape(-1, 3)[: self._m].copy(),
+                residual_rms_m=float(out[-3]),
+                iterations=int(out[-2]),
+                ok=bool(out[-1]),
             )
             self._outputs = None
         return self._result
@@ -189,18 +196,19 @@ class PoseSolver:
         here, so the caller may change its own afterwards."""
         m = len(marker_segment)
         joints, segments, offsets = self._model_constants(joint_offsets_m, marker_segment, marker_offsets_m)
+        start = np.concatenate([np.ravel(t0_m), np.ravel(R0_parent_segment)]).astype(DTYPE)
+        observed = np.full((self.size(m), 3), np.nan, DTYPE)
+        observed[:m] = np.where(np.asarray(mask, bool)[:, None] & np.isfinite(observed_m), observed_m, np.nan)
         outputs = _solve(
-            np.array(t0_m, DTYPE),
-            np.array(R0_parent_segment, DTYPE),
+            start,
             joints,
             segments,
             offsets,
-            self.pad(np.nan_to_num(np.asarray(observed_m, DTYPE))),
-            self.pad(np.asarray(mask, bool), False),
+            observed,
             self._ones[self.size(m)] if weight is None else self.pad(np.asarray(weight, DTYPE)),
             self._prior_w,
-            self.rtol,
-            self.atol,
+            rtol=self.rtol,
+            atol=self.atol,
             max_steps=self.max_steps,
         )
         return PendingFit(outputs, m)
