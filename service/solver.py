@@ -1,7 +1,7 @@
 """The skeleton fit: a jitted optimistix Gauss-Newton solve of the 45-DOF pose to labeled markers.
 
 Compile-once discipline: every array has a fixed shape (markers padded to one of two sizes, `max_markers`
-and half of it, a boolean mask says which are observed), so two compilations, both made at warm-up, serve
+and half of it; unobserved ones are NaN, so the mask is where they are finite), so two compilations, both made at warm-up, serve
 every frame, subject and visibility pattern. (The half size exists because J^T J, the solve's costliest
 step, grows with the padded rows: a 41-marker subject solves ~1.7x faster padded to 48 than to 96.) Missing
 markers are excluded with `jnp.where`, never by multiplying NaN by zero (which silently yields NaN
