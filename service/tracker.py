@@ -115,7 +115,10 @@ SEARCH_BONE_TOL_M = 0.05
 #: A segment with too few markers in view to be placed alone around its joint is placed with its child,
 #: unlabeled too, around the joint it puts the child's at: when the two place this many markers
 #: (`_down_the_chain`)
-CHAIN_MIN_MARKERS = 5
+CHAIN_MIN_MARKERS = 5  # (counting the segment's labeled markers)
+#: ... and so is a segment with this many markers labeled or fewer: one labeled marker and the joint leave
+#: it free to turn about them (a shank: its knee marker labeled, its ankle marker lost with the foot)
+CHAIN_MAX_LABELED = 1
 CHAIN_JOINT_TOL_M = 0.06  # ... the segment's markers within this of their distance from its joint
 RIVAL_JOINT_MARGIN_M = 0.05  # a search's points stay unassigned if a rival segment's joint fits within this of its own
 SHAPE_EVERY_FRAMES = 4  # segment layouts are checked on every this many frames
@@ -601,7 +604,7 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
             continue  # found with its parent (`_down_the_chain`)
         scored = _around_joint(model, pw[k], lab, los, cur, points, pool)
         assignment, below = _unambiguous(scored, 0, max(3 - len(lab), 1)), {}
-        if assignment is None and len(lab) == 0:
+        if assignment is None and len(lab) <= CHAIN_MAX_LABELED:
             assignment, below = _down_the_chain(model, st, k, labeled, lost, cur, points, pool)
         if assignment is None and len(lab) == 0:
             # the joint could not pin it (its parent moved unseen too, so the joint is where the fit left
@@ -677,14 +680,17 @@ def _around_joint(model: SubjectModel, o: np.ndarray, lab: np.ndarray, los: np.n
 def _down_the_chain(model: SubjectModel, st: TrackState, k: int, labeled: np.ndarray,
                     lost: np.ndarray, cur: np.ndarray, points: np.ndarray, pool: np.ndarray
                     ) -> tuple[dict[int, int] | None, dict[int, int]]:
-    """Segment k, none of whose markers is labeled, placed with its child: (k's {marker: point}, the
-    child's). Its joint is held but too few of its markers are in view to tell one placement from
-    another (an upper arm of two markers); each placement puts the child's joint (the elbow), around
-    which the child, unlabeled too, is searched. The combination placing most markers wins if no other
-    does about as well. (After a tennis serve a whole arm of six markers stayed unlabeled for 20 frames,
-    in view: both segments unobserved, the fit had left the elbow 15-30 cm off.)"""
+    """Segment k, at most CHAIN_MAX_LABELED of whose markers are labeled, placed with its child: (k's
+    {marker: point}, the child's). Its joint is held but too few of its markers are in view to tell one
+    placement from another (an upper arm of two markers; a shank whose knee marker alone is labeled);
+    each placement puts the child's joint (the elbow, the ankle), around which the child, unlabeled, is
+    searched. The combination placing most markers wins if no other does about as well. (After a tennis
+    serve a whole arm of six markers stayed unlabeled for 20 frames, in view: both segments unobserved,
+    the fit had left the elbow 15-30 cm off. A foot back from an occlusion stayed unlabeled in view under
+    a shank with one marker labeled, HDM05 at L3.)"""
     seg_of = model.marker_segment
     mine_idx = np.flatnonzero((seg_of == k) & st.ever_seen)
+    mine_lab = mine_idx[labeled[mine_idx]]
     scored = None
     for c in np.flatnonzero(_PARENTS == k):
         idx = np.flatnonzero((seg_of == c) & st.ever_seen)
@@ -695,7 +701,7 @@ def _down_the_chain(model: SubjectModel, st: TrackState, k: int, labeled: np.nda
             # the joint may be off by more than a search around it allows (a shoulder raised overhead in a
             # serve slides against the trunk markers that hold it): k is placed within a wider reach, and
             # the child confirms
-            scored = _around_joint(model, _joints_m(model, st)[k], mine_idx[:0], mine_idx[lost[mine_idx]], cur,
+            scored = _around_joint(model, _joints_m(model, st)[k], mine_lab, mine_idx[lost[mine_idx]], cur,
                                    points, pool, tol_m=CHAIN_JOINT_TOL_M)
         combined = []
         for n, rms, a, R, t in scored:
@@ -709,9 +715,10 @@ def _down_the_chain(model: SubjectModel, st: TrackState, k: int, labeled: np.nda
         firsts = {}
         for x in combined:
             firsts.setdefault(tuple(sorted(x[2].items())), x)
-        mine = _unambiguous(list(firsts.values()), 0, CHAIN_MIN_MARKERS)
+        least = CHAIN_MIN_MARKERS - len(mine_lab)
+        mine = _unambiguous(list(firsts.values()), 0, least)
         if mine is not None:
-            return mine, _unambiguous([(n, r, a2) for n, r, a, a2 in combined if a == mine], 0, CHAIN_MIN_MARKERS) or {}
+            return mine, _unambiguous([(n, r, a2) for n, r, a, a2 in combined if a == mine], 0, least) or {}
     return None, {}
 
 

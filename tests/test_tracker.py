@@ -261,6 +261,37 @@ def test_an_upper_arm_of_two_markers_in_view_is_found_with_its_forearm_around_th
     assert set(found) == expected and all(truth[p] == i for i, p in found.items())
 
 
+def test_a_shank_with_one_marker_labeled_is_found_with_its_foot_around_the_ankle_it_places():
+    """The knee bent and the foot turned while the shank's ankle marker and the whole foot went unlabeled;
+    the shank's other marker stayed labeled. That one marker and the knee leave the shank free to turn
+    about them, so the fit holds the ankle where it was and the foot cannot be searched around it. Each
+    point that fits the ankle marker's distance from the knee places the shank, and with it the ankle,
+    around which the foot is found (a foot back from a second's occlusion stayed unlabeled in view, until
+    two of its markers were taken on the heel's point and a ghost: HDM05 at L3). With the foot's points
+    gone, the ankle marker alone is not taken."""
+    from protocol.skeleton import SEGMENTS
+
+    rng = np.random.default_rng(5)
+    turns = {"r_shank": ("y", 60), "r_foot": ("y", -40)}
+    perf, model, st, old, now, _ = _turned_unseen(rng, turns)
+    names = list(perf.marker_names)
+    lost = np.isin(perf.marker_segment, [SEGMENTS.index(name) for name in turns])
+    lost[names.index("RSHN")] = False
+    on_foot = perf.marker_segment == SEGMENTS.index("r_foot")
+    assert np.linalg.norm(now - old, axis=1)[on_foot].min() > 0.1
+    labeled = ~lost
+    cur = np.where(labeled[:, None], now, np.nan)
+    ghosts = now[lost] + rng.normal(0.0, 0.05, (lost.sum(), 3))
+    points = np.concatenate([now, ghosts])
+    truth = np.concatenate([np.arange(len(now)), np.full(len(ghosts), -2)])
+    free = np.concatenate([lost, np.ones(len(ghosts), bool)])
+
+    found = tracker._search_segments(model, st, points, free, labeled, cur, lost)
+    assert set(found) == set(np.flatnonzero(lost)) and all(truth[p] == i for i, p in found.items())
+    without_foot = free & ~np.isin(truth, np.flatnonzero(on_foot))
+    assert tracker._search_segments(model, st, points, without_foot, labeled, cur, lost) == {}
+
+
 def test_a_lost_marker_is_found_where_its_segments_labeled_markers_and_joint_put_it():
     """A forearm marker lost while the others stay labeled (its partners place it far off: its last labeled
     point was another marker's): the elbow and two labeled markers fix the forearm, and the one point where
