@@ -80,12 +80,15 @@ def rigid_predict(partners, snap, dist_var, pos, labeled, which):
     """For each marker i where `which[i]`, carry its partners' positions when it was last seen
     (`snap[i, j]`) onto their positions now (`pos`, labeled ones) by the weighted best rigid motion
     (Kabsch, weights 1 / (sigma + 3 mm)^2), and the marker with them. Returns pred (M, 3) and spread (M,),
-    the partners' weighted RMS misfit; NaN where fewer than 3 partners are usable.
+    the partners' weighted RMS misfit, and swing (M,), how far [m] skin wobble (SKIN_M) could turn the
+    marker about the partners' long axis (large when they lie nearly in a line); NaN where fewer than 3
+    partners are usable.
     (tracker.rigid_predictions)"""
     m = pos.shape[0]
     n_part = partners.shape[1]
     pred = np.full((m, 3), np.nan)
     spread = np.full(m, np.nan)
+    swing = np.full(m, np.nan)
     src = np.empty((n_part, 3))
     dst = np.empty((n_part, 3))
     wt = np.empty(n_part)
@@ -123,6 +126,17 @@ def rigid_predict(partners, snap, dist_var, pos, labeled, which):
                 sq += wt[k] * (da * da + (dst[k, a] - cd[a]) ** 2)
                 for b in range(3):
                     H[a, b] += wt[k] * da * (dst[k, b] - cd[b])
+        # A partner set that is nearly a line (a knee, a thigh and a shoulder marker placing a foot) leaves the
+        # turn about that line to its markers' skin wobble, and a far marker swings with it: the wobble
+        # times the lever, over the set's extent about its long axis (sqrt of its two lesser variances).
+        S = np.zeros((3, 3))
+        for k in range(n):
+            for a in range(3):
+                for b in range(3):
+                    S[a, b] += wt[k] * (src[k, a] - cs[a]) * (src[k, b] - cs[b]) / wsum
+        lever = math.sqrt((snap[i, i, 0] - cs[0]) ** 2 + (snap[i, i, 1] - cs[1]) ** 2 + (snap[i, i, 2] - cs[2]) ** 2)
+        e1 = _largest_eigenvalue(S)
+        swing[i] = SKIN_M * lever / math.sqrt(max(S[0, 0] + S[1, 1] + S[2, 2] - e1, 1e-12))
         R = _rotation_of(H)
         trace = 0.0
         for a in range(3):
@@ -134,7 +148,21 @@ def rigid_predict(partners, snap, dist_var, pos, labeled, which):
             for b in range(3):
                 acc += R[a, b] * (snap[i, i, b] - cs[b])
             pred[i, a] = acc
-    return pred, spread
+    return pred, spread, swing
+
+
+@_jit
+def _largest_eigenvalue(S):
+    """The largest eigenvalue of the symmetric (3, 3) S, in closed form (the trigonometric solution of the
+    characteristic cubic, as in `_misfit`)."""
+    q = (S[0, 0] + S[1, 1] + S[2, 2]) / 3.0
+    d0, d1, d2 = S[0, 0] - q, S[1, 1] - q, S[2, 2] - q
+    p6 = math.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * (S[0, 1] ** 2 + S[0, 2] ** 2 + S[1, 2] ** 2)) / 6.0)
+    if p6 <= 0:
+        return q
+    det_shifted = d0 * (d1 * d2 - S[1, 2] ** 2) - S[0, 1] * (S[0, 1] * d2 - S[1, 2] * S[0, 2]) + S[0, 2] * (S[0, 1] * S[1, 2] - d1 * S[0, 2])
+    phi = math.acos(min(max(det_shifted / (2.0 * p6**3), -1.0), 1.0)) / 3.0
+    return q + 2.0 * p6 * math.cos(phi)
 
 
 @_jit

@@ -63,6 +63,11 @@ from service import kernels
 from service.config import EngineConfig
 
 N_PARTNERS = 8
+#: Partners nearly in a line place a far marker poorly: a turn about the line is left to their skin wobble
+#: (3 mm), which the lever swings (`kernels.rigid_predict`); a prediction that could swing more than this
+#: [m] does not withdraw a tracked label. A knee, a thigh and a shoulder marker placed a foot marker 17 cm
+#: off in one frame, and its correct track was withdrawn (cmu/135_02 at L3).
+RIGID_MAX_SWING_M = 0.05
 PARTNER_MIN_SAMPLES = 20  # a pair distance sampled fewer times cannot make two markers partners: its
 # spread is not known yet (a sternum marker hidden through the seed took two arm markers seen with it in
 # 3 frames as its most rigid partners, and was never placed again: squat)
@@ -356,7 +361,8 @@ def rigid_predictions(st: TrackState, pos: np.ndarray, labeled: np.ndarray, whic
     For each marker, the partners' positions when it was last seen are carried onto their positions now by
     the best rigid transform (weighted Kabsch), and so is the marker. Partners are weighted by how rigidly
     they keep their distance to it (sigma + 3 mm of skin). Returns (pred (M, 3), spread (M,) = weighted
-    RMS misfit of the partners [m]); NaN where fewer than 3 usable partners. (A compiled loop: `kernels`.)
+    RMS misfit of the partners [m], swing (M,) = how far [m] their skin wobble could turn it about their long
+    axis); NaN where fewer than 3 usable partners. (A compiled loop: `kernels`.)
     """
     return kernels.rigid_predict(st.partners, st.snap_m, st.dist_var_m2, pos, labeled, which)
 
@@ -794,12 +800,14 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
     keep their layout on the segment take part, and only on segments with four of them or more (one
     beyond the triangle to confirm it)."""
     parent = PARENTS[k]
-    if model.layout_rms_m is None or len(model.layout_rms_m) != model.n_markers:
+    if model.layout_rms_m is None or len(model.layout_rms_m) != model.n_markers or model.layout_offsets_m is None:
         return []  # layouts unmeasured (a calibration saved before they were kept)
     los = los[model.layout_rms_m[los] < SHAPE_LAYOUT_TOL_M]  # a marker that slides (a finger) misplaces it
     if parent < 0 or len(los) < 4:
         return []
-    off = model.marker_offsets_m
+    # the calibrated layout, not the offsets refinements on the engine's own labels may have moved (a foot
+    # marker refined while labeled on a neighbour's point left the foot unfound, cmu/85_12 at L3)
+    off = model.layout_offsets_m
     top, bones = parent, [_norm(model.joint_offsets_m[k])]  # up the unobserved chain to a held joint
     while PARENTS[top] >= 0 and not observed[top] and not observed[PARENTS[top]]:
         bones.append(_norm(model.joint_offsets_m[top]))
@@ -1302,10 +1310,11 @@ def step(
     check = ~labeled | suspicious
     check[st.frames % CHECK_EVERY_FRAMES :: CHECK_EVERY_FRAMES] = True
     check &= st.ever_seen
-    rpred, spread = rigid_predictions(st, cur, labeled, check)
+    rpred, spread, swing = rigid_predictions(st, cur, labeled, check)
     has_rigid = np.isfinite(rpred[:, 0])
     spread0 = np.where(has_rigid, spread, 0.0)
-    err = np.where(labeled & has_rigid, _norm(cur - rpred), 0.0)
+    steady = has_rigid & (swing <= RIGID_MAX_SWING_M)  # may withdraw a tracked label (NaN compares False)
+    err = np.where(labeled & steady, _norm(cur - rpred), 0.0)
     changed = _unswap(point_index, cur, rpred, err, config.rigid_check_m)
     if st.frames % REPAIR_EVERY_FRAMES == REPAIR_EVERY_FRAMES // 2:
         _repair_by_distances(st, point_index, cur, points, ~taken)
@@ -1314,9 +1323,9 @@ def step(
         changed = True
     if changed:  # (else every label and its error stand as computed)
         labeled = point_index >= 0
-        err = np.where(labeled & has_rigid, _norm(cur - rpred), 0.0)
+        err = np.where(labeled & steady, _norm(cur - rpred), 0.0)
     tol = config.rigid_check_m + 4.0 * spread0
-    bad = labeled & has_rigid & (err > tol)
+    bad = labeled & steady & (err > tol)
     # A re-acquired label is on probation: its distances to its partners are held to the long-run norm for
     # PROBATION_FRAMES, so a wrong re-acquisition cannot become its own reference and persist.
     on_probation = labeled & (st.provisional > 0)
@@ -1545,7 +1554,7 @@ def observe(
     dt = min(max((t_ns - st.last_t_ns) * 1e-9, 1e-4), 0.5)
     labeled = np.isfinite(cur[:, 0])
     missing = ~labeled & st.ever_seen
-    rpred, _ = rigid_predictions(st, cur, labeled, missing)
+    rpred, _, _ = rigid_predictions(st, cur, labeled, missing)
     skel_pred = _skeleton_now(st, t_ns, dt) if model.has_skeleton else None
     fallback = np.where(np.isfinite(rpred[:, :1]), rpred, st.pos_m if skel_pred is None else skel_pred)
     if model.has_skeleton and st.frames % SHAPE_EVERY_FRAMES == 0:

@@ -41,11 +41,33 @@ def test_rigid_predict_matches_a_weighted_kabsch_by_scipy():
         _, cur, labeled, partners, snap, var, _, _ = _random_case(seed)
         which = np.ones(len(cur), bool)
         which[::4] = False
-        pred, spread = kernels.rigid_predict(partners, snap, var, cur, labeled, which)
+        pred, spread, _ = kernels.rigid_predict(partners, snap, var, cur, labeled, which)
         for i in range(len(cur)):
             want_p, want_s = _rigid_reference(partners, snap, var, cur, labeled, i) if which[i] else (np.full(3, np.nan), np.nan)
             np.testing.assert_allclose(pred[i], want_p, atol=1e-9)
             np.testing.assert_allclose(spread[i], want_s, atol=1e-7)
+
+
+def test_rigid_predict_reports_the_swing_of_partners_in_a_line_far_from_the_marker():
+    """Three partners nearly in a line (a knee, a thigh and a shoulder marker) leave the turn about that
+    line to their skin wobble (1 mm here), which swings a marker 30 cm off the line by centimetres: a
+    swing over 5 cm, and the prediction that far off. The same marker near a spread-out set: a small
+    swing, and predicted within a centimetre."""
+    rng = np.random.default_rng(0)
+    line = np.array([[0.0, 0.0, 0.5], [0.0, 0.003, 0.8], [0.002, 0.0, 1.4]])
+    spread_out = np.array([[0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.0, 0.1]])
+    for partners_at, marker, want in ((line, [0.3, 0.0, 0.0], False), (spread_out, [0.05, 0.05, 0.05], True)):
+        pos = np.vstack([marker, partners_at])
+        m = len(pos)
+        partners = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]], np.int64)
+        snap = np.broadcast_to(pos, (m, m, 3)).copy()
+        R = Rotation.from_rotvec([0.1, 0.2, 0.0]).as_matrix()
+        now = pos @ R.T + rng.normal(0.0, 0.001, pos.shape)
+        labeled = np.array([False, True, True, True])
+        which = ~labeled
+        pred, _, swing = kernels.rigid_predict(partners, snap, np.zeros((m, m)), np.where(labeled[:, None], now, np.nan), labeled, which)
+        assert (swing[0] < 0.05) == want
+        assert (np.linalg.norm(pred[0] - now[0]) < 0.01) == want
 
 
 def test_distance_misfit_is_the_median_z_over_the_three_most_rigid_partners():

@@ -45,7 +45,7 @@ def test_rigid_predictions_follow_a_known_rigid_motion():
     labeled = np.ones(10, bool)
     labeled[3] = False
     now = np.where(labeled[:, None], moved, np.nan)
-    pred, spread = tracker.rigid_predictions(st, now, labeled, ~labeled)
+    pred, spread, _ = tracker.rigid_predictions(st, now, labeled, ~labeled)
     np.testing.assert_allclose(pred[3], moved[3], atol=1e-9)
     assert spread[3] < 1e-6  # closed-form misfit: exact up to ~1e-8 m of rounding
     assert np.all(np.isnan(pred[labeled]))  # only the markers asked for
@@ -77,7 +77,7 @@ def test_reacquisition_gate_is_capped_however_loose_the_partners(monkeypatch, ha
         st, res = tracker.step(model, st, cloud, np.ones(len(cloud), bool), t_ns(40 + k), CONFIG)
     assert (res.point_index >= 0).sum() == 9  # the partners were tracked through it
     labeled = res.point_index >= 0
-    _, spread = tracker.rigid_predictions(st, res.positions_m, labeled, ~labeled)
+    _, spread, _ = tracker.rigid_predictions(st, res.positions_m, labeled, ~labeled)
     wide = 0.8 * CONFIG.reacquire_gate_m + 3.0 * spread[3]
     assert wide > 5 * CONFIG.reacquire_gate_m  # the gate the partners' misfit asks for
     if has_skeleton:
@@ -340,6 +340,15 @@ def test_a_forearm_swung_out_of_reach_of_where_the_fit_left_its_elbow_is_found_b
     cur = np.where(labeled[:, None], now, np.nan)
 
     found = tracker._search_segments(model, st, now, on_forearm, labeled, cur, on_forearm)
+    assert found == {int(i): int(i) for i in np.flatnonzero(on_forearm)}
+    # the layout is the calibrated one (`layout_offsets_m`), not the offsets refinements on the engine's own
+    # labels moved: one marker's refined 3 cm off (labeled on a neighbour's point while it was refined)
+    # must not leave the forearm unfound (cmu/85_12 at L3: a foot stayed unlabeled in view for 0.5 s)
+    i = int(np.flatnonzero(on_forearm)[0])
+    moved = model.marker_offsets_m.copy()
+    moved[i] += [0.03, 0.0, 0.0]
+    refined = dataclasses.replace(model, marker_offsets_m=moved)
+    found = tracker._search_segments(refined, st, now, on_forearm, labeled, cur, on_forearm)
     assert found == {int(i): int(i) for i in np.flatnonzero(on_forearm)}
 
 
