@@ -352,6 +352,38 @@ def test_a_forearm_swung_out_of_reach_of_where_the_fit_left_its_elbow_is_found_b
     assert found == {int(i): int(i) for i in np.flatnonzero(on_forearm)}
 
 
+def test_a_swap_the_layout_cannot_see_is_told_by_the_joint():
+    """A foot whose heel is as far from the toe as from the fifth metatarsal: the toe and metatarsal labels
+    swapped fit the three markers' layout exactly (a turn of the foot about its long axis), so the layout
+    check cannot undo the swap (HDM05 at L3: 3 s). The ankle, which the shank holds, is a fourth point off
+    their plane: with it the swap shows, and the relabelling that undoes it is found; the true labels are
+    left alone."""
+    from protocol.skeleton import SEGMENTS
+    from service.calibration import world_transforms
+
+    rng = np.random.default_rng(6)
+    perf, model, st, old, _, _ = _turned_unseen(rng, {}, measured_layouts=True)
+    names = list(perf.marker_names)
+    k = SEGMENTS.index("r_foot")
+    lab = np.array([names.index(n) for n in ("RHEE", "RTOE", "RMT5")])
+    assert set(lab) == set(np.flatnonzero(perf.marker_segment == k))
+    layout = model.layout_offsets_m.copy()
+    layout[lab] = [[-0.05, 0.0, -0.06], [0.15, 0.03, -0.06], [0.15, -0.03, -0.06]]  # isosceles, ankle 6 cm above
+    model = dataclasses.replace(model, layout_offsets_m=layout, marker_offsets_m=layout)
+    Rw, pw = world_transforms(st.t_root_m, st.R_parent_segment, model.joint_offsets_m)
+    cur = old.copy()
+    cur[lab] = layout[lab] @ Rw[k].T + pw[k]
+    st.skel_pred_m = cur.copy()
+    maps = tracker._relabellings(3, 3)
+    symmetric = np.ones(len(maps), bool)
+    swapped = cur.copy()
+    swapped[lab[[1, 2]]] = cur[lab[[2, 1]]]
+
+    found = tracker._mirror_by_joint(model, st, k, lab, lab, maps, swapped, symmetric)
+    assert found is not None and list(lab[maps[found]]) == [lab[0], lab[2], lab[1]]
+    assert tracker._mirror_by_joint(model, st, k, lab, lab, maps, cur, symmetric) is None
+
+
 def test_points_that_fit_the_mirror_segment_as_well_are_not_given_to_either():
     """Left and right forearms carry mirror-image marker layouts, and three markers of one fit three of
     the other's by a rotation. Points the left forearm's search took (three of the right hand's) stay
