@@ -135,7 +135,7 @@ def rigid_predict(partners, snap, dist_var, pos, labeled, which):
                 for b in range(3):
                     S[a, b] += wt[k] * (src[k, a] - cs[a]) * (src[k, b] - cs[b]) / wsum
         lever = math.sqrt((snap[i, i, 0] - cs[0]) ** 2 + (snap[i, i, 1] - cs[1]) ** 2 + (snap[i, i, 2] - cs[2]) ** 2)
-        e1 = _largest_eigenvalue(S)
+        e1 = _extreme_eigenvalues(S[0, 0], S[1, 1], S[2, 2], S[0, 1], S[0, 2], S[1, 2])[0]
         swing[i] = SKIN_M * lever / math.sqrt(max(S[0, 0] + S[1, 1] + S[2, 2] - e1, 1e-12))
         R = _rotation_of(H)
         trace = 0.0
@@ -152,17 +152,17 @@ def rigid_predict(partners, snap, dist_var, pos, labeled, which):
 
 
 @_jit
-def _largest_eigenvalue(S):
-    """The largest eigenvalue of the symmetric (3, 3) S, in closed form (the trigonometric solution of the
-    characteristic cubic, as in `_misfit`)."""
-    q = (S[0, 0] + S[1, 1] + S[2, 2]) / 3.0
-    d0, d1, d2 = S[0, 0] - q, S[1, 1] - q, S[2, 2] - q
-    p6 = math.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * (S[0, 1] ** 2 + S[0, 2] ** 2 + S[1, 2] ** 2)) / 6.0)
+def _extreme_eigenvalues(m00, m11, m22, m01, m02, m12):
+    """(largest, smallest) eigenvalue of the symmetric 3 x 3 matrix with these entries, in closed form
+    (the trigonometric solution of the characteristic cubic)."""
+    q = (m00 + m11 + m22) / 3.0
+    d0, d1, d2 = m00 - q, m11 - q, m22 - q
+    p6 = math.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * (m01 * m01 + m02 * m02 + m12 * m12)) / 6.0)
     if p6 <= 0:
-        return q
-    det_shifted = d0 * (d1 * d2 - S[1, 2] ** 2) - S[0, 1] * (S[0, 1] * d2 - S[1, 2] * S[0, 2]) + S[0, 2] * (S[0, 1] * S[1, 2] - d1 * S[0, 2])
+        return q, q
+    det_shifted = d0 * (d1 * d2 - m12 * m12) - m01 * (m01 * d2 - m12 * m02) + m02 * (m01 * m12 - d1 * m02)
     phi = math.acos(min(max(det_shifted / (2.0 * p6**3), -1.0), 1.0)) / 3.0
-    return q + 2.0 * p6 * math.cos(phi)
+    return q + 2.0 * p6 * math.cos(phi), q + 2.0 * p6 * math.cos(phi + 2.0 * math.pi / 3.0)
 
 
 @_jit
@@ -327,13 +327,7 @@ def _misfit(H, sq, cnt):
     m02 = H[0, 0] * H[0, 2] + H[1, 0] * H[1, 2] + H[2, 0] * H[2, 2]
     m12 = H[0, 1] * H[0, 2] + H[1, 1] * H[1, 2] + H[2, 1] * H[2, 2]
     q = (m00 + m11 + m22) / 3.0
-    d0, d1, d2 = m00 - q, m11 - q, m22 - q
-    p6 = math.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * (m01 * m01 + m02 * m02 + m12 * m12)) / 6.0)
-    det_shifted = d0 * (d1 * d2 - m12 * m12) - m01 * (m01 * d2 - m12 * m02) + m02 * (m01 * m12 - d1 * m02)
-    safe = p6 if p6 > 0 else 1.0
-    phi = math.acos(min(max(det_shifted / (2.0 * safe**3), -1.0), 1.0)) / 3.0
-    e1 = q + 2.0 * p6 * math.cos(phi)
-    e3 = q + 2.0 * p6 * math.cos(phi + 2.0 * math.pi / 3.0)
+    e1, e3 = _extreme_eigenvalues(m00, m11, m22, m01, m02, m12)
     s1 = math.sqrt(max(e1, 0.0))
     s2 = math.sqrt(max(3.0 * q - e1 - e3, 0.0))
     s3 = math.sqrt(max(e3, 0.0))

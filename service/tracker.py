@@ -862,8 +862,9 @@ def _kabsch_rms(A: np.ndarray, B: np.ndarray, w: np.ndarray) -> np.ndarray:
 def _layout_fits(model: SubjectModel, cur: np.ndarray, sel: np.ndarray, ks: np.ndarray):
     """Segments ks's markers `sel` (M,) (all on a segment) registered onto their layout in one batch:
     (members, sorted by segment; the index in ks of each one's segment; how many each segment has; each
-    segment's RMS misfit [m]). The segments' markers are padded rows of one array, built with array
-    operations: a list of per-segment lookups cost more than the registration itself."""
+    segment's RMS misfit [m]; each segment's markers' own layout residual, RMS [m]). The segments' markers
+    are padded rows of one array, built with array operations: a list of per-segment lookups cost more
+    than the registration itself."""
     seg = model.marker_segment
     wanted = np.zeros(N_SEGMENTS, bool)
     wanted[ks] = True
@@ -877,7 +878,8 @@ def _layout_fits(model: SubjectModel, cur: np.ndarray, sel: np.ndarray, ks: np.n
     B = np.zeros((len(ks), width, 3))
     w = np.zeros((len(ks), width), bool)
     A[row, col], B[row, col], w[row, col] = model.layout_offsets_m[members], cur[members], True
-    return members, row, n_lab, _kabsch_rms(A, B, w)
+    typical = np.sqrt(np.bincount(row, model.layout_rms_m[members] ** 2, minlength=len(ks)) / n_lab)
+    return members, row, n_lab, _kabsch_rms(A, B, w), typical
 
 
 def _layout_slots(model: SubjectModel, st: TrackState) -> np.ndarray | None:
@@ -894,9 +896,13 @@ def _trusted_layouts(st: TrackState) -> np.ndarray:
 
 
 def _layout_tolerance(model: SubjectModel, markers: np.ndarray) -> float:
-    """[m] RMS within which these markers fit their layout when labeled right: COMPLETE_FIT_FACTOR times
-    their calibration residual, at least SHAPE_CLEAR_FIT_M."""
-    return max(SHAPE_CLEAR_FIT_M, COMPLETE_FIT_FACTOR * float(np.sqrt(np.mean(model.layout_rms_m[markers] ** 2))))
+    """[m] RMS within which these markers fit their layout when labeled right (`_tolerance_of`)."""
+    return float(_tolerance_of(np.sqrt(np.mean(model.layout_rms_m[markers] ** 2))))
+
+
+def _tolerance_of(typical):
+    """COMPLETE_FIT_FACTOR times a calibration residual `typical` [m] (RMS), at least SHAPE_CLEAR_FIT_M."""
+    return np.maximum(SHAPE_CLEAR_FIT_M, COMPLETE_FIT_FACTOR * typical)
 
 
 def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndarray, cand: np.ndarray,
@@ -1025,9 +1031,8 @@ def _reseat_outliers(model: SubjectModel, st: TrackState, points: np.ndarray, ca
         return changed
     # first every segment's labels at once: most fit, and only those that misfit are looked at one by one
     # (a loop over all of them cost ~0.3 ms on every check)
-    members, row, counts, rms_all = _layout_fits(model, cur, labeled & slots, ks)
-    typical = np.sqrt(np.bincount(row, model.layout_rms_m[members] ** 2, minlength=len(ks)) / counts)
-    misfit = rms_all > RESEAT_MISFIT_FACTOR * np.maximum(SHAPE_CLEAR_FIT_M, COMPLETE_FIT_FACTOR * typical)
+    *_, rms_all, typical = _layout_fits(model, cur, labeled & slots, ks)
+    misfit = rms_all > RESEAT_MISFIT_FACTOR * _tolerance_of(typical)
     for r, k in enumerate(ks):
         if not (misfit[r] or changed.any()):  # (a move below changes the labels the batch judged)
             continue
@@ -1180,12 +1185,11 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     ks = np.flatnonzero(counts >= SHAPE_MIN_LABELED)
     if len(ks) == 0:
         return changed
-    members, row, n_lab, rms0 = _layout_fits(model, cur, labeled & slots, ks)
+    members, row, n_lab, rms0, typical = _layout_fits(model, cur, labeled & slots, ks)
     # a segment fits when its labels sit about as well as they did in calibration: a few times its markers'
     # own layout residual (1-2 mm on a foot), and never worse than SHAPE_MIN_RMS_M. A fixed 12 mm let a toe
     # label on the fifth metatarsal's point pass (10 mm, 85_12 at L2) for 1.6 s.
     # (only where a relabelling could then be taken on clear evidence, below: checking the others costs time)
-    typical = np.sqrt(np.bincount(row, model.layout_rms_m[members] ** 2, minlength=len(ks)) / n_lab)
     can_clear = (n_lab >= SHAPE_CLEAR_MIN_LABELS) & (typical <= SHAPE_CLEAR_HANDOVER_LAYOUT_M)
     tight = typical <= SHAPE_CLEAR_LAYOUT_M
     tol = np.where(can_clear, np.minimum(SHAPE_MIN_RMS_M, np.maximum(SHAPE_FIT_FLOOR_M, SHAPE_FIT_FACTOR * typical)), SHAPE_MIN_RMS_M)
@@ -1243,12 +1247,12 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
             & (rms0[r] >= SHAPE_CLEAR_SHARE * symmetric_rms)
             & (rms <= max(SHAPE_CLEAR_FIT_M, 2.0 * typical[r]))
         )
-        mirror = _mirror_by_joint(model, st, ks[r], lab, slot, maps, cur,
-                                  (symmetric_rms < SHAPE_DISTINCT_M) & ~clear & ~blocked & (rms < SHAPE_GOOD_RMS_M))
+        unseen = (symmetric_rms < SHAPE_DISTINCT_M) & ~clear  # relabellings the layout cannot tell
+        mirror = _mirror_by_joint(model, st, ks[r], lab, slot, maps, cur, unseen & ~blocked & (rms < SHAPE_GOOD_RMS_M))
         if mirror is not None:
             proposals[r] = slot[maps[mirror]]
             continue
-        rms = np.where(((symmetric_rms < SHAPE_DISTINCT_M) & ~clear) | blocked, np.inf, rms)
+        rms = np.where(unseen | blocked, np.inf, rms)
         rms[0] = np.inf
         best = int(np.argmin(rms))
         # (one taken on clear evidence must also stand out: two that fit alike leave it open which)
