@@ -117,6 +117,11 @@ SEARCH_INLIER_M = 0.012  # ... and a marker with a point this close to where the
 #: subject was lost) is looked for by its own layout, as a free rigid body whose joint lies this close to
 #: its bone's length from the grandparent joint (`_search_free_segment`).
 SEARCH_BONE_TOL_M = 0.05
+GROUP_SD_M = 0.005  # (no skeleton, `_search_rigid_groups`) markers whose distance varied less than this move as one ...
+GROUP_PAIR_TOL_M = 0.004  # ... matched to points whose distances match theirs within this + 3 sigma ...
+GROUP_INLIER_M = 0.008  # ... and placed on points this close
+GROUP_MIN_PLACED = 4  # ... and are taken when this many of them are placed on points (a triangle and one more)
+GROUP_REACH_M = 0.4  # ... and lie within this beyond their distance statistics' reach (mean + 4 sigma) from every labeled marker (a limb swings out of the range it showed)
 #: A segment with too few markers in view to be placed alone around its joint is placed with its child,
 #: unlabeled too, around the joint it puts the child's at: when the two place this many markers
 #: (`_down_the_chain`)
@@ -772,12 +777,12 @@ def _arrangements(n: int, k: int) -> np.ndarray:
 
 
 def _placed(off: np.ndarray, los: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarray,
-            near: np.ndarray) -> dict[int, int]:
+            near: np.ndarray, inlier_m: float = SEARCH_INLIER_M) -> dict[int, int]:
     """{marker: point}: markers `los` (offsets `off`) that the segment's motion (R, t) puts within
-    SEARCH_INLIER_M of a point `near`, each on its nearest."""
+    `inlier_m` of a point `near`, each on its nearest."""
     d = _norm((off[los] @ R.T + t)[:, None] - points[near][None])
     best = np.argmin(d, axis=1)
-    ok = d[np.arange(len(los)), best] < SEARCH_INLIER_M
+    ok = d[np.arange(len(los)), best] < inlier_m
     return {int(los[r]): int(near[best[r]]) for r in np.flatnonzero(ok)}
 
 
@@ -847,6 +852,86 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
                 continue
             scored.append((len(assignment), float(np.sqrt(np.mean(res**2))), assignment))
     return scored
+
+
+def _search_rigid_groups(st: TrackState, points: np.ndarray, pool: np.ndarray, labeled: np.ndarray,
+                         cur: np.ndarray, lost: np.ndarray) -> dict[int, int]:
+    """Which points markers `lost` are now, {marker: point}, for a subject with no skeleton (a seed taken
+    lying down: numediart/03_rolling rolls on the floor, where a limb's cluster hides whole, and nothing
+    placed it again once it did). Without segments, the groups are what the partner statistics say moves
+    rigidly now: lost markers whose distances to one another all varied by under GROUP_SD_M. A group's
+    layout is where its markers were when its first marker was last labeled (`snap_m`); its widest
+    triangle is matched to unclaimed points at the same mutual distances, within the reach the distance
+    statistics allow from every labeled marker (the body holds a thigh's cluster within a metre of the
+    head, whatever the pose), and the rigid motion places the group's other markers. A group's best
+    hypothesis is taken if no other assignment of it does about as well (`_unambiguous`: a group of three
+    is its triangle, which a scalene layout names and a near-isosceles one leaves unfound), and no other
+    group's fits the same points about as well (the left hand's cluster fits the right hand's points
+    when they are mirror images: the two hands stay unfound while both are lost and one is in view)."""
+    sd = np.sqrt(st.dist_var_m2)
+    known = st.dist_n >= PARTNER_MIN_SAMPLES
+    rigid = known & (np.maximum(sd, np.sqrt(st.dist_slow_var_m2)) < GROUP_SD_M)  # now and over the long memory
+    lab = np.flatnonzero(labeled)
+    grouped = np.zeros(len(lost), bool)
+    best = []  # per group: (n placed, RMS, {marker: point})
+    for i in np.flatnonzero(lost):
+        layout = st.snap_m[i]
+        if grouped[i]:
+            continue
+        group = [i]  # the lost markers rigid to every member, most rigid to i first
+        for j in np.argsort(sd[i]):
+            if lost[j] and not grouped[j] and j != i and np.isfinite(layout[j, 0]) and rigid[j, group].all():
+                group.append(j)
+        group = np.array(group)
+        if len(group) < GROUP_MIN_PLACED:
+            continue
+        grouped[group] = True
+        off = layout[group]
+        # reach: each group marker within its mean distance + 4 sigma (+ GROUP_REACH_M) of every labeled
+        # marker whose distance to it is known
+        ok = np.ones(len(pool), bool)
+        P = points[pool]
+        for g in group:
+            ref = lab[known[g, lab]]
+            if len(ref):
+                bound = st.dist_mean_m[g, ref] + 4.0 * sd[g, ref] + GROUP_REACH_M
+                ok &= (_norm(P[:, None] - cur[ref][None]) <= bound[None]).all(1)
+        near = pool[ok]
+        if len(near) < 3:
+            continue
+        tri = max(itertools.combinations(range(len(group)), 3),
+                  key=lambda c: _norm(np.cross(off[c[1]] - off[c[0]], off[c[2]] - off[c[0]])))
+        A = off[list(tri)]
+        Q = points[near]
+        D = _norm(Q[:, None] - Q[None])
+        tri = group[list(tri)]
+        ab, ac, bc = (np.abs(D - _norm(A[u] - A[v])) < GROUP_PAIR_TOL_M + 3.0 * sd[tri[u], tri[v]]
+                      for u, v in ((0, 1), (0, 2), (1, 2)))
+        scored = []
+        for a, b in zip(*np.nonzero(ab)):
+            for c in np.flatnonzero(ac[a] & bc[b]):
+                if c == a or c == b:
+                    continue
+                R, t = rigid_motion(A, Q[[a, b, c]])
+                res = _norm(A @ R.T + t - Q[[a, b, c]])
+                if res.max() > GROUP_INLIER_M:
+                    continue
+                placed = _placed(off, np.arange(len(group)), R, t, points, near, GROUP_INLIER_M)
+                if len(set(placed.values())) < len(placed):
+                    continue
+                scored.append((len(placed), float(np.sqrt(np.mean(res**2))),
+                               {int(group[r]): p for r, p in placed.items()}))
+        assignment = _unambiguous(scored, 0, GROUP_MIN_PLACED)
+        if assignment:
+            n, r = scored[0][:2]
+            best.append((n, r, assignment))
+    found: dict[int, int] = {}
+    for n, r, assignment in best:
+        pts = set(assignment.values())
+        if not any(n2 >= n - 1 and r2 < 1.5 * r + 0.003 and pts & set(a2.values()) for n2, r2, a2 in best
+                   if a2 is not assignment):
+            found.update(assignment)
+    return found
 
 
 def _kabsch_rms(A: np.ndarray, B: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -1516,6 +1601,14 @@ def step(
     rows, cols, _ = _assign(pred_missing, gate_missing, points, ~taken)
     if len(rows):
         labeled, cur = accept(rows, cols, segment_rule=model.has_skeleton)
+    if not model.has_skeleton and search_due and not subject_lost:
+        # no skeleton (a seed taken lying down): a cluster hidden whole, which its partners across the
+        # joint place where it was, is found by its own layout (`_search_rigid_groups`)
+        lost = ~labeled & st.ever_seen & (st.hidden_frames >= SEARCH_LOST_FRAMES)
+        if lost.sum() >= GROUP_MIN_PLACED:
+            found = _search_rigid_groups(st, points, np.flatnonzero(~taken), labeled, cur, lost)
+            if found:
+                labeled, cur = accept(np.array(list(found)), np.array(list(found.values())), segment_rule=False)
 
     # 5. Reject labels the model disagrees with.
     if skel_pred is not None and residual < 0.5 * config.reject_residual_m:

@@ -932,3 +932,35 @@ def test_a_swap_the_running_distance_statistics_absorbed_is_swapped_back(monkeyp
     assert tracker.distance_misfit(st, cur, np.ones(8, bool))[[0, 4]].max() < tracker.Z_SUSPECT  # absorbed
     tracker._repair_by_distances(st, point_index, cur, now, np.zeros(8, bool))
     assert (point_index == np.arange(8)).all() == long_memory
+
+
+def _limb(angle: float, layout: np.ndarray, pivot: np.ndarray) -> np.ndarray:
+    """A rigid cluster `layout` (offsets from the pivot) swung by `angle` [rad] about the vertical at `pivot`."""
+    return layout @ Rotation.from_rotvec([0.0, 0.0, angle]).as_matrix().T + pivot
+
+
+def test_with_no_skeleton_a_cluster_hidden_whole_is_found_by_its_layout():
+    """A subject with no skeleton (a seed taken lying down): a limb's cluster of four hides whole and swings a
+    quarter turn meanwhile, so the partners across the joint place it 40 cm off. Once back it is found by
+    its own layout among the free points (`_search_rigid_groups`), with a ghost beside it, and never given
+    to the wrong marker. Fails without the search: the cluster stays unlabeled."""
+    rng = np.random.default_rng(11)
+    trunk = rng.uniform(-0.15, 0.15, (5, 3)) + [0.0, 0.0, 0.3]
+    layout = np.array([[0.30, 0.02, 0.0], [0.38, -0.05, 0.03], [0.45, 0.06, -0.02], [0.52, -0.01, 0.05]])
+    other = np.array([[-0.25, 0.1, 0.0], [-0.33, 0.0, 0.04], [-0.42, 0.12, 0.0], [-0.5, 0.03, -0.03]])
+    pivot_a, pivot_b = np.array([0.1, 0.0, 0.3]), np.array([-0.1, 0.0, 0.3])
+    n, seed, hide = 480, 240, slice(300, 360)
+    angle = 0.3 * np.sin(np.arange(n) / 25.0)  # the limbs move during the seed: their partners are their own
+    angle[hide] += np.linspace(0.0, np.pi / 2, hide.stop - hide.start)
+    angle[hide.stop:] += np.pi / 2
+    P = np.stack([np.concatenate([trunk + [0.001 * f, 0, 0], _limb(angle[f], layout, pivot_a + [0.001 * f, 0, 0]),
+                                  _limb(-angle[f], other, pivot_b + [0.001 * f, 0, 0])]) for f in range(n)])
+    limb = np.arange(5, 9)
+    P[hide, 5:9] = np.nan
+    ghosts = (P[:, 6] + [0.0, 0.06, 0.0])[:, None]
+    ghosts[: hide.stop] = P[hide.stop, 6] + [0.0, 0.06, 0.0]  # (a point that is never a marker)
+    got = run_tracker(P, seed, shuffle_seed=11, ghosts_m=ghosts)
+    assert not np.any((got[seed:] >= 0) & (got[seed:] != np.arange(P.shape[1])))  # nothing wrong
+    assert not np.any(got[seed:] == -2)
+    back = hide.stop + tracker.SEARCH_LOST_FRAMES + tracker.SEARCH_EVERY_FRAMES
+    assert np.all(got[back:, limb] == limb)
