@@ -964,3 +964,43 @@ def test_with_no_skeleton_a_cluster_hidden_whole_is_found_by_its_layout():
     assert not np.any(got[seed:] == -2)
     back = hide.stop + tracker.SEARCH_LOST_FRAMES + tracker.SEARCH_EVERY_FRAMES
     assert np.all(got[back:, limb] == limb)
+
+
+def _swinging_hand(n: int, swing_from: int):
+    """A trunk of six markers and a hand marker 0.5 m out on a joint that swings +-12 degrees (so the
+    hand's distances to the trunk vary by centimetres), then 10 degrees further from frame `swing_from`."""
+    rng = np.random.default_rng(5)
+    trunk = rng.uniform(-0.15, 0.15, (6, 3)) + [0.0, 0.0, 1.0]
+    pivot = np.array([0.2, 0.0, 1.2])
+    angle = np.deg2rad(12.0) * np.sin(np.arange(n) / 15.0)
+    angle[swing_from:] += np.deg2rad(10.0)
+    hand = pivot + 0.5 * np.stack([np.cos(angle), np.sin(angle), np.zeros(n)], axis=1)
+    return np.concatenate([np.broadcast_to(trunk, (n, 6, 3)), hand[:, None]], axis=1)
+
+
+@pytest.mark.parametrize("fit_error_m", [0.005, 0.06])
+def test_a_marker_its_partners_misplace_is_taken_where_a_well_fitting_skeleton_puts_it(fit_error_m):
+    """A hand marker hid for two frames while its joint bent 10 degrees: its trunk partners, which agree
+    among themselves, put it 8 cm from where it is, beyond their gate, and nothing else would place it.
+    A skeleton that fits well and puts it 5 mm off has it re-acquired (the second opinion); one that puts
+    it 6 cm off leaves it unlabeled."""
+    n, seed, hide = 140, 120, (124, 126)
+    P = _swinging_hand(n, hide[0])
+    model, st = seeded_state(P, seed)
+    model = dataclasses.replace(model, marker_segment=np.array([0] * 6 + [1]), has_skeleton=True)
+    tracker._update_partners(st)
+    rng = np.random.default_rng(6)
+    for f in range(seed, n):
+        error = np.zeros((7, 3))
+        error[6] = fit_error_m * np.array([0.0, 0.0, 1.0])
+        st.skel_pred_m, st.skel_vel_m_s, st.skel_t_ns, st.fit_rms_m = P[f] + error, np.zeros((7, 3)), t_ns(f), 0.005
+        seen = np.arange(6) if hide[0] <= f < hide[1] else np.arange(7)
+        order = rng.permutation(len(seen))
+        if f == hide[1]:  # where the partners put it as it comes back
+            rpred, _, _ = tracker.rigid_predictions(st, np.where(np.arange(7)[:, None] < 6, P[f], np.nan),
+                                                    np.arange(7) < 6, np.arange(7) == 6)
+            assert 0.06 < np.linalg.norm(rpred[6] - P[f, 6]) < tracker.CROSS_JOINT_DISAGREE_M
+        st, res = tracker.step(model, st, P[f, seen[order]], np.ones(len(seen), bool), t_ns(f), CONFIG)
+        if f == hide[1]:
+            got = seen[order][res.point_index[6]] if res.point_index[6] >= 0 else -1
+            assert got == (6 if fit_error_m < tracker.SECOND_OPINION_GATE_M else -1)
