@@ -855,6 +855,12 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
     return scored
 
 
+@functools.lru_cache(maxsize=None)
+def _triples(n: int) -> np.ndarray:
+    """(C, 3) every choice of 3 of n indices, in itertools.combinations order."""
+    return np.array(list(itertools.combinations(range(n), 3)), dtype=np.int64).reshape(-1, 3)
+
+
 def _search_rigid_groups(st: TrackState, points: np.ndarray, pool: np.ndarray, labeled: np.ndarray,
                          cur: np.ndarray, lost: np.ndarray) -> dict[int, int]:
     """Which points markers `lost` are now, {marker: point}, for a subject with no skeleton (a seed taken
@@ -873,15 +879,20 @@ def _search_rigid_groups(st: TrackState, points: np.ndarray, pool: np.ndarray, l
     known = st.dist_n >= PARTNER_MIN_SAMPLES
     rigid = known & (np.maximum(sd, np.sqrt(st.dist_slow_var_m2)) < GROUP_SD_M)  # now and over the long memory
     lab = np.flatnonzero(labeled)
+    P = points[pool]
+    d_lab = _norm(P[:, None] - cur[lab][None])  # (pool, labeled) for the reach
     grouped = np.zeros(len(lost), bool)
     best = []  # per group: (n placed, RMS, {marker: point})
-    for i in np.flatnonzero(lost):
+    for i in np.flatnonzero(lost & ((rigid & lost).sum(1) >= GROUP_MIN_PLACED - 1)):
         layout = st.snap_m[i]
         if grouped[i]:
             continue
-        group = [i]  # the lost markers rigid to every member, most rigid to i first
-        for j in np.argsort(sd[i]):
-            if lost[j] and not grouped[j] and j != i and np.isfinite(layout[j, 0]) and rigid[j, group].all():
+        # the lost markers rigid to every member, most rigid to i first (a greedy clique)
+        order = np.argsort(sd[i])
+        order = order[lost[order] & ~grouped[order] & rigid[order, i] & np.isfinite(layout[order, 0]) & (order != i)]
+        group = [i]
+        for j in order:
+            if rigid[j, group].all():
                 group.append(j)
         group = np.array(group)
         if len(group) < GROUP_MIN_PLACED:
@@ -890,18 +901,14 @@ def _search_rigid_groups(st: TrackState, points: np.ndarray, pool: np.ndarray, l
         off = layout[group]
         # reach: each group marker within its mean distance + 4 sigma (+ GROUP_REACH_M) of every labeled
         # marker whose distance to it is known
-        ok = np.ones(len(pool), bool)
-        P = points[pool]
-        for g in group:
-            ref = lab[known[g, lab]]
-            if len(ref):
-                bound = st.dist_mean_m[g, ref] + 4.0 * sd[g, ref] + GROUP_REACH_M
-                ok &= (_norm(P[:, None] - cur[ref][None]) <= bound[None]).all(1)
-        near = pool[ok]
+        bound = np.where(known[np.ix_(group, lab)], st.dist_mean_m[np.ix_(group, lab)] + 4.0 * sd[np.ix_(group, lab)]
+                         + GROUP_REACH_M, np.inf)
+        near = pool[(d_lab[:, None, :] <= bound[None]).all(axis=(1, 2))]
         if len(near) < 3:
             continue
-        tri = max(itertools.combinations(range(len(group)), 3),
-                  key=lambda c: _norm(np.cross(off[c[1]] - off[c[0]], off[c[2]] - off[c[0]])))
+        triples = _triples(len(group))  # the widest triangle
+        tri = triples[np.argmax(_norm(np.cross(off[triples[:, 1]] - off[triples[:, 0]],
+                                               off[triples[:, 2]] - off[triples[:, 0]])))]
         A = off[list(tri)]
         Q = points[near]
         D = _norm(Q[:, None] - Q[None])
