@@ -19,7 +19,9 @@
    whose markers is labeled (a foot back from an occlusion: its partners across the joint place it no
    better than the fit) are first looked for by registering their segment around its joint, where a fit
    at most SEARCH_FIT_AGE_FRAMES old puts it (an older one: a solve is launched and the search waits a
-   frame). A subject with fewer than 4 labels (it left the volume, or was hidden whole) is looked for by
+   frame). A marker its partners place where no point is gets a second opinion from a well-fitting
+   skeleton (SECOND_OPINION_GATE_M); with no skeleton at all, a cluster hidden whole is found by its own
+   layout (`_search_rigid_groups`). A subject with fewer than 4 labels (it left the volume, or was hidden whole) is looked for by
    registering its last marker cloud onto the unclaimed points nearby (rigid ICP): on every frame at
    first, then on every RELOCATE_EVERY_FRAMES-th.
    The periodic work (every 2nd, 3rd, 4th frame) runs on frames chosen by the subject's frame count,
