@@ -811,6 +811,23 @@ def _unambiguous(scored: list, margin: int = 0, least: int = 3) -> dict[int, int
     return assignment
 
 
+def _triangle_matches(A: np.ndarray, P: np.ndarray, tol_m: tuple) -> list:
+    """Every ordered triple of points P (N, 3) at the mutual distances of the triangle A (3, 3), within
+    tol_m (per side: ab, ac, bc) [m], as (R, t, residual (3,) [m]): the rigid motion (Kabsch) taking A onto
+    those points, and how far each corner then lies from its point. The searches that place a segment or a
+    cluster by its layout alone start here."""
+    D = _norm(P[:, None] - P[None])
+    ab, ac, bc = (np.abs(D - _norm(A[u] - A[v])) < tol for (u, v), tol in zip(((0, 1), (0, 2), (1, 2)), tol_m))
+    matches = []
+    for a, b in zip(*np.nonzero(ab)):
+        for c in np.flatnonzero(ac[a] & bc[b]):
+            if c == a or c == b:
+                continue
+            R, t = rigid_motion(A, P[[a, b, c]])
+            matches.append((R, t, _norm(A @ R.T + t - P[[a, b, c]])))
+    return matches
+
+
 def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray, pool: np.ndarray,
                          los: np.ndarray, k: int, observed: np.ndarray) -> list:
     """Hypotheses (n placed, RMS, {marker: point}) for segment k, none of whose markers `los` is labeled,
@@ -846,24 +863,16 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
         return _norm(np.cross(off[c[1]] - off[c[0]], off[c[2]] - off[c[0]]))
 
     A = off[list(max(itertools.combinations(los, 3), key=area))]
-    P = points[near]
-    D = _norm(P[:, None] - P[None])
-    ab, ac, bc = (np.abs(D - _norm(A[i] - A[j])) < SEARCH_PAIR_TOL_M for i, j in ((0, 1), (0, 2), (1, 2)))
     scored = []
-    for a, b in zip(*np.nonzero(ab)):
-        for c in np.flatnonzero(ac[a] & bc[b]):
-            if c == a or c == b:
-                continue
-            R, t = rigid_motion(A, P[[a, b, c]])
-            res = _norm(A @ R.T + t - P[[a, b, c]])
-            d = _norm(t - anchor)  # one bone: at its length; a chain: within its reach
-            off_bone = abs(d - reach) if len(bones) == 1 else d - reach
-            if res.max() > 2 * SEARCH_INLIER_M or off_bone > SEARCH_BONE_TOL_M:
-                continue
-            assignment = _placed(off, los, R, t, points, near)
-            if len(set(assignment.values())) < len(assignment):
-                continue
-            scored.append((len(assignment), float(np.sqrt(np.mean(res**2))), assignment))
+    for R, t, res in _triangle_matches(A, points[near], (SEARCH_PAIR_TOL_M,) * 3):
+        d = _norm(t - anchor)  # one bone: at its length; a chain: within its reach
+        off_bone = abs(d - reach) if len(bones) == 1 else d - reach
+        if res.max() > 2 * SEARCH_INLIER_M or off_bone > SEARCH_BONE_TOL_M:
+            continue
+        assignment = _placed(off, los, R, t, points, near)
+        if len(set(assignment.values())) < len(assignment):
+            continue
+        scored.append((len(assignment), float(np.sqrt(np.mean(res**2))), assignment))
     return scored
 
 
@@ -921,26 +930,16 @@ def _search_rigid_groups(st: TrackState, points: np.ndarray, pool: np.ndarray, l
         triples = _triples(len(group))  # the widest triangle
         tri = triples[np.argmax(_norm(np.cross(off[triples[:, 1]] - off[triples[:, 0]],
                                                off[triples[:, 2]] - off[triples[:, 0]])))]
-        A = off[list(tri)]
-        Q = points[near]
-        D = _norm(Q[:, None] - Q[None])
-        tri = group[list(tri)]
-        ab, ac, bc = (np.abs(D - _norm(A[u] - A[v])) < GROUP_PAIR_TOL_M + 3.0 * sd[tri[u], tri[v]]
-                      for u, v in ((0, 1), (0, 2), (1, 2)))
+        A, tri = off[list(tri)], group[list(tri)]
+        tol = tuple(GROUP_PAIR_TOL_M + 3.0 * sd[tri[u], tri[v]] for u, v in ((0, 1), (0, 2), (1, 2)))
         scored = []
-        for a, b in zip(*np.nonzero(ab)):
-            for c in np.flatnonzero(ac[a] & bc[b]):
-                if c == a or c == b:
-                    continue
-                R, t = rigid_motion(A, Q[[a, b, c]])
-                res = _norm(A @ R.T + t - Q[[a, b, c]])
-                if res.max() > GROUP_INLIER_M:
-                    continue
-                placed = _placed(off, np.arange(len(group)), R, t, points, near, GROUP_INLIER_M)
-                if len(set(placed.values())) < len(placed):
-                    continue
-                scored.append((len(placed), float(np.sqrt(np.mean(res**2))),
-                               {int(group[r]): p for r, p in placed.items()}))
+        for R, t, res in _triangle_matches(A, points[near], tol):
+            if res.max() > GROUP_INLIER_M:
+                continue
+            placed = _placed(off, np.arange(len(group)), R, t, points, near, GROUP_INLIER_M)
+            if len(set(placed.values())) < len(placed):
+                continue
+            scored.append((len(placed), float(np.sqrt(np.mean(res**2))), {int(group[r]): p for r, p in placed.items()}))
         assignment = _unambiguous(scored, 0, GROUP_MIN_PLACED)
         if assignment:
             n, r = scored[0][:2]
