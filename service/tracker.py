@@ -21,9 +21,9 @@
    at most SEARCH_FIT_AGE_FRAMES old puts it (an older one: a solve is launched and the search waits a
    frame). A marker its partners place where no point is gets a second opinion from a well-fitting
    skeleton (SECOND_OPINION_GATE_M); with no skeleton at all, a cluster hidden whole is found by its own
-   layout (`_search_rigid_groups`). A subject with fewer than 4 labels (it left the volume, or was hidden whole) is looked for by
-   registering its last marker cloud onto the unclaimed points nearby (rigid ICP): on every frame at
-   first, then on every RELOCATE_EVERY_FRAMES-th.
+   layout (`_search_rigid_groups`). A subject with fewer than 4 labels (it left the volume, or was hidden
+   whole) is looked for by registering its last marker cloud onto the unclaimed points nearby (rigid
+   ICP): on every frame at first, then on every RELOCATE_EVERY_FRAMES-th.
    The periodic work (every 2nd, 3rd, 4th frame) runs on frames chosen by the subject's frame count,
    which starts at its phase (`new_state`), so subjects do it on different frames.
    Here the frame's labels are final. What follows (`step(defer=True)` leaves it to `finish`, after the
@@ -122,11 +122,16 @@ SEARCH_INLIER_M = 0.012  # ... and a marker with a point this close to where the
 #: subject was lost) is looked for by its own layout, as a free rigid body whose joint lies this close to
 #: its bone's length from the grandparent joint (`_search_free_segment`).
 SEARCH_BONE_TOL_M = 0.05
-GROUP_SD_M = 0.005  # (no skeleton, `_search_rigid_groups`) markers whose distance varied less than this move as one ...
-GROUP_PAIR_TOL_M = 0.004  # ... matched to points whose distances match theirs within this + 3 sigma ...
-GROUP_INLIER_M = 0.008  # ... and placed on points this close
-GROUP_MIN_PLACED = 4  # ... and are taken when this many of them are placed on points (a triangle and one more)
-GROUP_REACH_M = 0.4  # ... and lie within this beyond their distance statistics' reach (mean + 4 sigma) from every labeled marker (a limb swings out of the range it showed)
+#: With no skeleton (`_search_rigid_groups`), markers whose mutual distances varied less than GROUP_SD_M
+#: move as one cluster; its triangle is matched to points at its distances within GROUP_PAIR_TOL_M + 3
+#: sigma, its markers are placed on points within GROUP_INLIER_M, and it is taken when GROUP_MIN_PLACED
+#: are (a triangle and one more), all within GROUP_REACH_M beyond the reach the distance statistics give
+#: from every labeled marker (mean + 4 sigma: a limb swings out of the range it showed)
+GROUP_SD_M = 0.005
+GROUP_PAIR_TOL_M = 0.004
+GROUP_INLIER_M = 0.008
+GROUP_MIN_PLACED = 4
+GROUP_REACH_M = 0.4
 #: A segment with too few markers in view to be placed alone around its joint is placed with its child,
 #: unlabeled too, around the joint it puts the child's at: when the two place this many markers
 #: (`_down_the_chain`)
@@ -884,18 +889,18 @@ def _triples(n: int) -> np.ndarray:
 
 def _search_rigid_groups(st: TrackState, points: np.ndarray, pool: np.ndarray, labeled: np.ndarray,
                          cur: np.ndarray, lost: np.ndarray) -> dict[int, int]:
-    """Which points markers `lost` are now, {marker: point}, for a subject with no skeleton (a seed taken
-    lying down: numediart/03_rolling rolls on the floor, where a limb's cluster hides whole, and nothing
-    placed it again once it did). Without segments, the groups are what the partner statistics say moves
-    rigidly now: lost markers whose distances to one another all varied by under GROUP_SD_M. A group's
-    layout is where its markers were when its first marker was last labeled (`snap_m`); its widest
-    triangle is matched to unclaimed points at the same mutual distances, within the reach the distance
-    statistics allow from every labeled marker (the body holds a thigh's cluster within a metre of the
-    head, whatever the pose), and the rigid motion places the group's other markers. A group's best
-    hypothesis is taken if no other assignment of it does about as well (`_unambiguous`: a group of three
-    is its triangle, which a scalene layout names and a near-isosceles one leaves unfound), and no other
-    group's fits the same points about as well (the left hand's cluster fits the right hand's points
-    when they are mirror images: the two hands stay unfound while both are lost and one is in view)."""
+    """Which points markers `lost` are now, {marker: point}, for a subject with no skeleton (a seed taken lying
+    down: numediart/03_rolling rolls on the floor, where a limb's cluster hides whole, and nothing placed it
+    again once it did). Without segments, the groups are what the partner statistics say moves rigidly now:
+    lost markers whose distances to one another all varied by under GROUP_SD_M. A group's layout is where its
+    markers were when its first marker was last labeled (`snap_m`); its widest triangle is matched to
+    unclaimed points at the same mutual distances, within the reach the distance statistics allow from every
+    labeled marker (the body holds a thigh's cluster within a metre of the head, whatever the pose), and the
+    rigid motion places the group's other markers. A group's best hypothesis, GROUP_MIN_PLACED markers placed
+    or more (three, the triangle alone, took wrong points: 03_rolling's precision at L0 fell from 98.6 to 90 %
+    in a trial), is taken if no other assignment of it does about as well (`_unambiguous`), and no other
+    group's fits the same points about as well (the left hand's cluster fits the right hand's points when they
+    are mirror images: the two hands stay unfound while both are lost and one is in view)."""
     sd = np.sqrt(st.dist_var_m2)
     known = st.dist_n >= PARTNER_MIN_SAMPLES
     rigid = known & (np.maximum(sd, np.sqrt(st.dist_slow_var_m2)) < GROUP_SD_M)  # now and over the long memory
@@ -905,9 +910,9 @@ def _search_rigid_groups(st: TrackState, points: np.ndarray, pool: np.ndarray, l
     grouped = np.zeros(len(lost), bool)
     best = []  # per group: (n placed, RMS, {marker: point})
     for i in np.flatnonzero(lost & ((rigid & lost).sum(1) >= GROUP_MIN_PLACED - 1)):
-        layout = st.snap_m[i]
         if grouped[i]:
             continue
+        layout = st.snap_m[i]
         # the lost markers rigid to every member, most rigid to i first (a greedy clique)
         order = np.argsort(sd[i])
         order = order[lost[order] & ~grouped[order] & rigid[order, i] & np.isfinite(layout[order, 0]) & (order != i)]
