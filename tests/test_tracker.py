@@ -949,7 +949,7 @@ def _limb(angle: float, layout: np.ndarray, pivot: np.ndarray) -> np.ndarray:
 
 def test_with_no_skeleton_a_cluster_hidden_whole_is_found_by_its_layout():
     """A subject with no skeleton (a seed taken lying down): a limb's cluster of four hides whole and swings a
-    quarter turn meanwhile, so the partners across the joint place it 40 cm off. Once back it is found by
+    quarter turn meanwhile, so the partners across the joint place it 40-70 cm off. Once back it is found by
     its own layout among the free points (`_search_rigid_groups`), with a ghost beside it, and never given
     to the wrong marker. Fails without the search: the cluster stays unlabeled."""
     rng = np.random.default_rng(11)
