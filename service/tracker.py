@@ -904,12 +904,14 @@ def _search_rigid_groups(st: TrackState, points: np.ndarray, pool: np.ndarray, l
     sd = np.sqrt(st.dist_var_m2)
     known = st.dist_n >= PARTNER_MIN_SAMPLES
     rigid = known & (np.maximum(sd, np.sqrt(st.dist_slow_var_m2)) < GROUP_SD_M)  # now and over the long memory
+    seeds = np.flatnonzero(lost & ((rigid & lost).sum(1) >= GROUP_MIN_PLACED - 1))
+    if len(seeds) == 0 or len(pool) < 3:
+        return {}  # (most frames: no group hidden whole, nothing to compute)
     lab = np.flatnonzero(labeled)
-    P = points[pool]
-    d_lab = _norm(P[:, None] - cur[lab][None])  # (pool, labeled) for the reach
+    d_lab = _norm(points[pool][:, None] - cur[lab][None])  # (pool, labeled) for the reach
     grouped = np.zeros(len(lost), bool)
     best = []  # per group: (n placed, RMS, {marker: point})
-    for i in np.flatnonzero(lost & ((rigid & lost).sum(1) >= GROUP_MIN_PLACED - 1)):
+    for i in seeds:
         if grouped[i]:
             continue
         layout = st.snap_m[i]
