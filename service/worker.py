@@ -68,6 +68,13 @@ class Worker:
         except (AttributeError, OSError, ValueError, IndexError):
             return float("nan")
 
+    def wait_idle(self, timeout_s: float | None = None) -> None:
+        """Wait until every job submitted so far is answered (a benchmark's back-to-back frame loop: it
+        outruns the stream time the engine gives a job, which a live stream gives in wall time)."""
+        with self._lock:
+            pending = list(self._pending.values())
+        concurrent.futures.wait(pending, timeout=timeout_s)
+
     def close(self) -> None:
         """Stop the helper process (its pending jobs fail)."""
         with self._lock:

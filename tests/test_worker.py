@@ -68,6 +68,13 @@ def test_submitting_a_large_job_does_not_wait_for_a_busy_helper(helper):
     assert later.result(timeout=60) == 0.0
 
 
+def test_wait_idle_returns_when_every_submitted_job_is_answered(helper):
+    jobs = [helper.submit(time.sleep, 0.3), helper.submit(_pid)]
+    assert not jobs[0].done()
+    helper.wait_idle(timeout_s=60)
+    assert all(j.done() for j in jobs)
+
+
 def test_cpu_time_of_the_helper_is_reported(helper):
     assert np.isnan(helper.cpu_s())  # none running yet
     helper.submit(_pid).result(timeout=60)
