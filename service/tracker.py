@@ -174,6 +174,11 @@ COMPLETE_JOINT_RMS_M = 0.02  # ... and whose markers and joint fit the offsets t
 COMPLETE_PAIR_MISFIT_M = 0.01  # ... is taken unrivalled when the labeled pair's distance misfits the layout's by this much [m] ...
 COMPLETE_UNRIVALLED_JOINT_M = 0.1  # ... and the joint fits within this [m] RMS (the pair is wrong: the joint only guards)
 SHAPE_CONFIRM = 2  # ... when the same relabelling wins this many checks running
+#: A fit that followed permuted labels takes several solves to turn the segment back once the layout checks
+#: have put them right: meanwhile its predictions sit where the old labels were, and the skeleton's unswap
+#: would permute them again (a foot's toe and fifth metatarsal, so swapped back, stayed swapped for 12 s:
+#: 85_12 at L3). So for this many frames it may not swap them.
+SHAPE_HOLD_FRAMES = 8
 #: (`_mirror_by_joint`) a relabelling the layout cannot tell from the identity (three markers and their mirror
 #: image) is taken when, with the segment's joint as a fourth point, it fits under JOINT_GAIN times the
 #: identity, which misfits by JOINT_MIN_MISFIT_M or more. (Dev suite: at 0.5, L2 99.215 -> 99.193 %, HDM05 lost up
@@ -274,6 +279,7 @@ class TrackState:
     vel_measured: np.ndarray | None = None  # (M,) bool: vel_m_s comes from two observations
     acc_dt_s: float = 0.0  # the frame interval acc_m_s2 was measured over
     hidden_frames: np.ndarray | None = None  # (M,) int: frames since the marker was last labeled
+    layout_hold: np.ndarray | None = None  # (M,) int: frames left in which the skeleton may not swap labels the layout checks moved
     # the layout check (`_relabel_by_shape`): per segment, the relabelling asked for on the last checks
     # and on how many checks running; per set of labeled markers (bytes), the RMS of each of its
     # relabellings of the layout onto itself; per segment, the share of checks on which the labels or a
@@ -623,8 +629,10 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
     marker, and the hypothesis placing most markers on points wins, if no other assignment does as well
     (two mirror-image markers alone stay unfound). It must place three markers, labeled ones counted
     (one lost marker of a segment with two labeled is placed where they and the joint put it). A segment
-    with too few markers in view to be placed is placed with its child (`_down_the_chain`); one whose
-    joint cannot pin it, by its layout alone (`_search_free_segment`)."""
+    with too few markers in view to be placed is placed with its child (`_down_the_chain`), failing that,
+    if it has two markers, by both (a thigh's knee marker at its distances from the hip and from the thigh
+    marker: the fit turns a thigh held by one marker about the hip, and its knee, shank and foot with it);
+    one whose joint cannot pin it, by its layout alone (`_search_free_segment`)."""
     found: dict[int, int] = {}
     pw = _joints_m(model, st)
     observed = _observed_segments(model.marker_segment, labeled)
@@ -642,6 +650,8 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
         assignment, below = _unambiguous(scored, 0, max(3 - len(lab), 1)), {}
         if assignment is None and len(lab) <= CHAIN_MAX_LABELED:
             assignment, below = _down_the_chain(model, st, k, labeled, lost, cur, points, pool)
+        if assignment is None and len(idx) < 3:  # a segment of two: both its markers placed
+            assignment = _unambiguous(scored, 0, max(len(idx) - len(lab), 1))
         if assignment is None and len(lab) == 0:
             # the joint could not pin it (its parent moved unseen too, so the joint is where the fit left
             # it: a serving arm's forearm stayed unfound for 0.7 s): its layout alone. No joint to pin it:
@@ -1486,6 +1496,8 @@ def step(
         z = distance_misfit(st, cur, labeled, np.flatnonzero(on_probation))
         bad |= on_probation & (z > Z_SUSPECT)
     st.provisional = np.maximum(st.provisional - 1, 0)
+    if st.layout_hold is not None:
+        st.layout_hold = np.maximum(st.layout_hold - 1, 0)
     if bad.any():
         taken[point_index[bad]] = False
         point_index[bad] = -1
@@ -1501,6 +1513,8 @@ def step(
         # two labels that crossed where no partners could tell (a mirror-symmetric pair, such as the two
         # wrist markers, keeps every distance): each sits where the skeleton puts the other
         err_s = _norm(np.where(labeled[:, None], cur - skel_pred, 0.0))
+        if st.layout_hold is not None:  # (see SHAPE_HOLD_FRAMES)
+            err_s[st.layout_hold > 0] = 0.0
         _unswap(point_index, cur, skel_pred, err_s, config.rigid_check_m)
 
     # 4. Re-acquire occluded markers (Hungarian on predictions, gated).
@@ -1693,8 +1707,12 @@ def step(
             relabeled |= _reseat_outliers(model, st, points, ~taken & free, idx, now)
             if relabeled.any():
                 # the last fit followed the permuted labels (it turned the forearm half a turn to match):
-                # its word on these markers is void until a fit on the new labels (launched here) comes back
+                # its word on these markers is void until a fit on the new labels (launched here) comes back,
+                # and its swaps of them for a while after (SHAPE_HOLD_FRAMES)
                 st.skel_pred_m = None
+                if st.layout_hold is None:
+                    st.layout_hold = np.zeros(m, int)
+                st.layout_hold[relabeled] = SHAPE_HOLD_FRAMES
         st.labeled &= ~relabeled  # a relabelled marker's velocity is its old one, not the jump between tracks
         final = idx >= 0
         _commit(st, now, final, fallback, t_ns, dt)

@@ -276,7 +276,8 @@ def test_a_shank_with_one_marker_labeled_is_found_with_its_foot_around_the_ankle
     point that fits the ankle marker's distance from the knee places the shank, and with it the ankle,
     around which the foot is found (a foot back from a second's occlusion stayed unlabeled in view, until
     two of its markers were taken on the heel's point and a ghost: HDM05 at L3). With the foot's points
-    gone, the ankle marker alone is not taken."""
+    gone, the ankle marker is still found, alone, at its distances from the knee and from the labeled
+    shank marker (a segment of two markers), and not on any ghost."""
     from protocol.skeleton import SEGMENTS
 
     rng = np.random.default_rng(5)
@@ -297,7 +298,42 @@ def test_a_shank_with_one_marker_labeled_is_found_with_its_foot_around_the_ankle
     found = tracker._search_segments(model, st, points, free, labeled, cur, lost)
     assert set(found) == set(np.flatnonzero(lost)) and all(truth[p] == i for i, p in found.items())
     without_foot = free & ~np.isin(truth, np.flatnonzero(on_foot))
-    assert tracker._search_segments(model, st, points, without_foot, labeled, cur, lost) == {}
+    ankle = names.index("RANK")
+    assert tracker._search_segments(model, st, points, without_foot, labeled, cur, lost) == {ankle: ankle}
+
+
+def test_a_thigh_held_by_one_marker_is_found_with_its_knee_marker_around_the_hip():
+    """A thigh turned 35 degrees at the hip while its knee marker went unlabeled: the fit, held by the thigh
+    marker alone, keeps the knee where it was. The knee marker's point is the one at its distances from the
+    hip and from the thigh marker; a ghost as far from the hip, but not from the thigh marker, is not it;
+    and with a second point at both distances (turned about the hip-thigh-marker axis) neither is taken."""
+    from protocol.skeleton import SEGMENTS
+
+    rng = np.random.default_rng(5)
+    perf, model, st, old, now, _ = _turned_unseen(rng, {"r_thigh": ("x", 35)})
+    names = list(perf.marker_names)
+    knee, thigh = names.index("RKNE"), names.index("RTHI")
+    assert np.linalg.norm(now[knee] - old[knee]) > 0.1
+    lost = np.zeros(len(now), bool)
+    lost[knee] = True
+    cur = np.where(~lost[:, None], now, np.nan)
+    hip = tracker._joints_m(model, st)[SEGMENTS.index("r_thigh")]
+    r = now[knee] - hip
+    axis = (now[thigh] - hip) / np.linalg.norm(now[thigh] - hip)
+    bend = np.cross(r, axis) / np.linalg.norm(np.cross(r, axis))  # turns the knee toward the thigh marker
+    ghost = hip + Rotation.from_rotvec(0.6 * bend).apply(r)
+    assert abs(np.linalg.norm(ghost - now[thigh]) - np.linalg.norm(now[knee] - now[thigh])) > 0.02
+    twin = hip + Rotation.from_rotvec(np.pi * axis).apply(r)  # as far from the hip and from the thigh marker
+    assert np.linalg.norm(twin - now[knee]) > 0.05
+
+    def search(*extra):
+        points = np.concatenate([now, np.array(extra).reshape(-1, 3)])
+        free = np.zeros(len(points), bool)
+        free[knee] = free[len(now):] = True
+        return tracker._search_segments(model, st, points, free, ~lost, cur, lost)
+
+    assert search(ghost) == {knee: knee}
+    assert search(ghost, twin) == {}
 
 
 def test_a_lost_marker_is_found_where_its_segments_labeled_markers_and_joint_put_it():
@@ -1012,3 +1048,28 @@ def test_a_marker_its_partners_misplace_is_taken_where_a_well_fitting_skeleton_p
         if f == hide[1]:
             got = seen[order][res.point_index[6]] if res.point_index[6] >= 0 else -1
             assert got == (6 if fit_error_m < tracker.SECOND_OPINION_GATE_M else -1)
+
+
+@pytest.mark.parametrize("hold", [False, True])
+def test_labels_the_layout_checks_moved_are_not_swapped_back_by_a_fit_that_followed_the_old_ones(hold):
+    """Two trunk markers' labels just put back by the layout checks, while the latest fit (made on the old,
+    permuted labels) puts each where the other is: the skeleton's unswap would permute them again, and
+    for SHAPE_HOLD_FRAMES it may not."""
+    n, seed = 124, 120
+    P = _swinging_hand(n, n)
+    model, st = seeded_state(P, seed)
+    model = dataclasses.replace(model, marker_segment=np.array([0] * 6 + [1]), has_skeleton=True)
+    tracker._update_partners(st)
+    f = seed
+    fit = P[f].copy()
+    fit[[3, 4]] = fit[[4, 3]]
+    assert np.linalg.norm(P[f, 3] - P[f, 4]) > 2 * CONFIG.rigid_check_m
+    st.skel_pred_m, st.skel_vel_m_s, st.skel_t_ns, st.fit_rms_m = fit, np.zeros((7, 3)), t_ns(f), 0.005
+    if hold:
+        st.layout_hold = np.zeros(7, int)
+        st.layout_hold[[3, 4]] = tracker.SHAPE_HOLD_FRAMES
+    st, res = tracker.step(model, st, P[f], np.ones(7, bool), t_ns(f), CONFIG)
+    expected = np.arange(7) if hold else np.array([0, 1, 2, 4, 3, 5, 6])
+    assert res.point_index.tolist() == expected.tolist()
+    if hold:
+        assert st.layout_hold.tolist() == [0, 0, 0] + [tracker.SHAPE_HOLD_FRAMES - 1] * 2 + [0, 0]
