@@ -653,7 +653,7 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
         assignment, below = _unambiguous(scored, 0, max(3 - len(lab), 1)), {}
         if assignment is None and len(lab) <= CHAIN_MAX_LABELED:
             assignment, below = _down_the_chain(model, st, k, labeled, lost, cur, points, pool)
-        if assignment is None and len(idx) < 3:  # a segment of two: both its markers placed
+        if assignment is None and len(idx) == 2:  # a segment of two: both its markers placed
             assignment = _unambiguous(scored, 0, max(len(idx) - len(lab), 1))
         if assignment is None and len(lab) == 0:
             # the joint could not pin it (its parent moved unseen too, so the joint is where the fit left
