@@ -339,6 +339,7 @@ def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m
         acc_m_s2=np.zeros((m, 3)),
         vel_measured=np.zeros(m, bool),
         hidden_frames=np.zeros(m, int),
+        layout_hold=np.zeros(m, int),
         frames=phase,
     )
     if history_m is not None:
@@ -1499,8 +1500,7 @@ def step(
         z = distance_misfit(st, cur, labeled, np.flatnonzero(on_probation))
         bad |= on_probation & (z > Z_SUSPECT)
     st.provisional = np.maximum(st.provisional - 1, 0)
-    if st.layout_hold is not None:
-        st.layout_hold = np.maximum(st.layout_hold - 1, 0)
+    st.layout_hold = np.maximum(st.layout_hold - 1, 0)
     if bad.any():
         taken[point_index[bad]] = False
         point_index[bad] = -1
@@ -1516,8 +1516,7 @@ def step(
         # two labels that crossed where no partners could tell (a mirror-symmetric pair, such as the two
         # wrist markers, keeps every distance): each sits where the skeleton puts the other
         err_s = _norm(np.where(labeled[:, None], cur - skel_pred, 0.0))
-        if st.layout_hold is not None:  # (see SHAPE_HOLD_FRAMES)
-            err_s[st.layout_hold > 0] = 0.0
+        err_s[st.layout_hold > 0] = 0.0  # (see SHAPE_HOLD_FRAMES)
         _unswap(point_index, cur, skel_pred, err_s, config.rigid_check_m)
 
     # 4. Re-acquire occluded markers (Hungarian on predictions, gated).
@@ -1713,8 +1712,6 @@ def step(
                 # its word on these markers is void until a fit on the new labels (launched here) comes back,
                 # and its swaps of them for a while after (SHAPE_HOLD_FRAMES)
                 st.skel_pred_m = None
-                if st.layout_hold is None:
-                    st.layout_hold = np.zeros(m, int)
                 st.layout_hold[relabeled] = SHAPE_HOLD_FRAMES
         st.labeled &= ~relabeled  # a relabelled marker's velocity is its old one, not the jump between tracks
         final = idx >= 0
