@@ -55,7 +55,8 @@ class EngineConfig:
     tpose_auto: bool = True
     """Detect people standing in a T-pose in unlabeled points and create subjects from them."""
     tpose_window_frames: int = 60
-    """Frames a T-pose candidate must hold still before a subject is created from it."""
+    """Frames a subject found in a T-pose is on trial: labeled from the frame it is found, it is dropped
+    unless it still holds the T-pose at their end, when the markers hidden as it was found join it."""
     merge_radius_m: float = 0.005
     """Points closer than this [m] are one marker reconstructed twice (two camera sets' rays, an exporter's
     copy): only one of them is labeled. Body markers never come this close (their centres lie a diameter

@@ -1786,6 +1786,18 @@ def _commit(st: TrackState, cur: np.ndarray, labeled: np.ndarray, fallback: np.n
     _snapshot(st, cur, labeled)
 
 
+def resume(st: TrackState, rows: np.ndarray, positions_m: np.ndarray) -> None:
+    """Markers found outside the step (`rows`, at `positions_m` this frame: an automatic subject's trial) are
+    tracked from there on the next frame, at rest."""
+    st.labeled[rows] = True
+    st.ever_seen[rows] = True
+    st.pos_m[rows] = positions_m
+    st.vel_m_s[rows] = 0.0
+    st.acc_m_s2[rows] = 0.0
+    st.vel_measured[rows] = False
+    st.hidden_frames[rows] = 0
+
+
 def finish(st: TrackState) -> None:
     """Run the bookkeeping a deferred `step` left (idempotent)."""
     if st.unfinished is not None:

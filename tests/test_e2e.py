@@ -177,7 +177,7 @@ def test_synthetic_performer_found_from_its_t_pose(daemon, tmp_path):
     labels = load_labels(tmp_path / "tpose_labels.npz") if (tmp_path / "tpose_labels.npz").is_file() else {}
     assert labels, f"no subject was created from the T-pose ({run})"
     given = given_labels(labels, seq)
-    result = score(seq, given, "tpose", int(seq.rate_hz))  # from 1 s: the subject exists after 0.5 s
+    result = score(seq, given, "tpose", int(seq.rate_hz))  # from 1 s (the engine's tests hold frame 0)
     accuracy, answered = _answered_accuracy(result, given)
     # Frames a loaded machine made the daemon drop are no labeling error (see _answered_accuracy); the
     # engine's own tests hold the T-pose start to >= 95 % in process.
