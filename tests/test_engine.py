@@ -306,6 +306,33 @@ def test_a_tpose_left_within_the_trial_is_no_subject():
     assert not any(any(g) for g in given[window + 1:])
 
 
+def test_a_person_who_steps_in_and_stands_in_a_t_pose_becomes_a_new_subject_while_the_first_is_tracked():
+    """Performer 1 is found in its T-pose at the start; performer 2, 2.5 m away, appears 2 s later in its
+    own T-pose (its recording delayed by 2 s) and becomes S2, found among the points S1 leaves free; S1
+    keeps its labels through it. Measured: S2 appears on its first frame; 100 % accuracy for each
+    performer over the last 3 s."""
+    rec, _ = multi_perform([8, 9], spacing_m=2.5, duration_s=6.0)
+    delay = int(2 * rec.rate_hz)
+    n = rec.points_m.shape[1] // 2
+    points = rec.points_m.copy()
+    points[:, n:] = np.nan
+    points[delay:, n:] = rec.points_m[: len(points) - delay, n:]
+    seq = corrupt(dataclasses.replace(rec, points_m=points), "L0", 8)
+    engine = Engine(EngineConfig(tpose_auto=True))
+    stats = []
+    given = run(seq, engine, seeded=False, stats=stats)
+    created = {name: f for f, st in enumerate(stats) for name in st.new_subjects}
+    assert created.keys() == {"S1", "S2"} and engine.subjects() == ["S1", "S2"], created
+    assert created["S1"] == 0 and delay <= created["S2"] <= delay + 4, created
+    last = int(3 * seq.rate_hz)
+    s = score(seq, given, "tpose", len(seq.points_m) - last)
+    assert s.accuracy >= 0.99 and s.precision == 1.0, s.worst_markers()
+    for f in range(len(given)):  # each subject labels its own performer only
+        for label, t in zip(given[f] or [], seq.truth[f]):
+            if label:
+                assert seq.marker_names[t].startswith("Performer1" if label.startswith("S1:") else "Performer2"), (f, label)
+
+
 def test_an_automatic_subject_takes_its_skeleton_one_calibration_period_after_its_trial():
     """A subject found in a T-pose has no frame interval of its own yet; its calibration, started on the
     frame after its trial (`tpose_window_frames`), still takes effect CALIBRATE_APPLY_S (in frames at
