@@ -283,11 +283,13 @@ def engine_cost(data_dir: Path, cache_dir: str, seconds: float = COST_S) -> dict
     - back to back: the next frame as soon as the last one's pose is known, and the helper's jobs (which
       a live stream gives their stream time in wall time) waited for between frames, untimed. It shows
       the engine's own cost with warm caches.
+    - paced, spinning: paced, but waiting for each frame in a busy loop instead of sleeping, as the
+      daemon does with `--busy-poll` (one core kept busy).
 
     Why both: on this shared virtual machine, code that ran a few milliseconds ago is slow the first time
     it runs again (`idle_penalty`: the first call of a small numpy computation after an 8 ms sleep,
     relative to the same call right after; 1.0 on a machine that keeps its caches), and a paced frame
-    is ~100 numpy calls that each pay it once."""
+    is ~100 numpy calls that each pay it once. A core that spins instead of sleeping pays little of it."""
     cmd = [sys.executable, "-m", "benchmarks.speed", "engine-cost", str(data_dir), cache_dir, str(seconds)]
     env = {**_python_env(), "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}  # as `mocap-service` sets them
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
@@ -310,13 +312,16 @@ def _engine_cost_here(data_dir: Path, cache_dir: str, seconds: float) -> dict:
     seq = corrupt(rec, "L2", 1)
     paced = _cost_run(seq, seconds, paced=True)
     b2b = _cost_run(seq, seconds, paced=False)
+    spin = _cost_run(seq, seconds, paced=True, spin=True)
     return {"file": f"{LATENCY_FILE} L2", "markers": len(seq.marker_names), **paced,
-            **{f"b2b_{k}": v for k, v in b2b.items()}, "idle_penalty": _idle_penalty(),
+            **{f"b2b_{k}": v for k, v in b2b.items()}, **{f"spin_{k}": v for k, v in spin.items()}, "idle_penalty": _idle_penalty(),
+            "idle_penalty_spin": _idle_penalty(spin=True),
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
-def _cost_run(seq, seconds: float, paced: bool) -> dict:
-    """One pass of `engine_cost` over `seq` (seeded for SEED_S, then `seconds` of frames timed)."""
+def _cost_run(seq, seconds: float, paced: bool, spin: bool = False) -> dict:
+    """One pass of `engine_cost` over `seq` (seeded for SEED_S, then `seconds` of frames timed); `spin`:
+    paced frames are waited for in a busy loop."""
     from service import worker
     from service.engine import Engine, FrameInput
 
@@ -338,7 +343,8 @@ def _cost_run(seq, seconds: float, paced: bool) -> dict:
             cpu0, start = time.process_time() + helper.cpu_s(), time.perf_counter() - f * period_s
         if start is not None and paced:
             while time.perf_counter() < start + f * period_s:  # paced like a live stream
-                time.sleep(max(0.0, start + f * period_s - time.perf_counter() - 0.0005))
+                if not spin:
+                    time.sleep(max(0.0, start + f * period_s - time.perf_counter() - 0.0005))
         elif not paced:
             helper.wait_idle()
         t0 = time.perf_counter()
@@ -358,13 +364,18 @@ def _cost_run(seq, seconds: float, paced: bool) -> dict:
             "cpu_ms_per_frame": cpu_ms, "solved_fraction": solved / max(len(a), 1)}
 
 
-def _idle_penalty(calls: int = 200) -> float:
+def _idle_penalty(calls: int = 200, spin: bool = False) -> float:
     """Median over `calls` of: the time of a small numpy computation (41 x 41 marker distances) run first
-    after an 8 ms sleep, over the same computation's time run right after it."""
+    after an 8 ms sleep (`spin`: 8 ms of a busy loop), over the same computation's time run right after it."""
     pts = np.random.default_rng(0).normal(size=(41, 3))
     ratios = []
     for _ in range(calls):
-        time.sleep(0.008)
+        if spin:
+            end = time.perf_counter() + 0.008
+            while time.perf_counter() < end:
+                pass
+        else:
+            time.sleep(0.008)
         t0 = time.perf_counter()
         np.linalg.norm(pts[:, None] - pts[None], axis=2).sum()
         t1 = time.perf_counter()
@@ -696,9 +707,13 @@ def report_lines(inproc: dict, speed: dict) -> list[str]:
                      f"{d['cpu_ms_per_frame']:.2f} ms per frame. Back to back (the helper's jobs waited for between "
                      f"frames, untimed): labels {_f(d.get('b2b_labels_mean_ms'), '{:.2f}')} / {_f(d.get('b2b_labels_p50_ms'), '{:.2f}')} / "
                      f"{_f(d.get('b2b_labels_p99_ms'), '{:.2f}')} ms (labels mean {runs(d, 'b2b_labels_mean_ms', '{:.2f}')}). "
+                     f"Paced, spinning between frames instead of sleeping (as `serve --busy-poll` waits): labels "
+                     f"{_f(d.get('spin_labels_mean_ms'), '{:.2f}')} / {_f(d.get('spin_labels_p50_ms'), '{:.2f}')} / "
+                     f"{_f(d.get('spin_labels_p99_ms'), '{:.2f}')} ms (labels mean {runs(d, 'spin_labels_mean_ms', '{:.2f}')}). "
                      f"{d['frames']} frames of {d['file']} ({d['markers']} markers), a solve launched on "
                      f"{100 * d['solved_fraction']:.0f} % of them. This machine's idle penalty: a small numpy "
-                     f"computation run first after an 8 ms sleep takes {_f(d.get('idle_penalty'), '{:.1f}')}x as long as right after")
+                     f"computation run first after an 8 ms sleep takes {_f(d.get('idle_penalty'), '{:.1f}')}x as long as right after "
+                     f"({_f(d.get('idle_penalty_spin'), '{:.1f}')}x after 8 ms of spinning)")
     lines.append(f"| per-frame engine cost, one subject (`Engine.step`; `+ complete` for the pose) | {res} | "
                  f"{_f(d.get('peak_rss_mb'), '{:.0f}')} |")
     for key, title in (("startup_cold", "start-up to first labeled frame, empty compile cache"),
