@@ -629,6 +629,8 @@ class Engine:
         cur = [np.where(old.labeled[:, None], old.pos_m, np.nan)]
         f0 = old.frames - len(s.history) + 1
         cols = []
+        if s.model.has_skeleton:
+            Rs, ps = calibration.world_transforms(old.t_root_m, old.R_parent_segment, s.model.joint_offsets_m)
         for track in tracks:
             name = f"M{len(markers):02d}"
             while name in markers:
@@ -638,7 +640,6 @@ class Engine:
             seg.append(0)
             off.append(np.zeros(3))
             if s.model.has_skeleton:  # ride on the segment of the nearest marker, at its current offset
-                Rs, ps = calibration.world_transforms(old.t_root_m, old.R_parent_segment, s.model.joint_offsets_m)
                 near = int(np.argmin(np.linalg.norm(old.pos_m - p_new, axis=1)))
                 seg[-1] = s.model.marker_segment[near]
                 off[-1] = Rs[seg[-1]].T @ (p_new - ps[seg[-1]])
