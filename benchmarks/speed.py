@@ -274,7 +274,7 @@ def label_throughput(data_dir: Path, file: str, max_skip_frames: int | None) -> 
 def engine_cost(data_dir: Path, cache_dir: str, seconds: float = COST_S) -> dict:
     """Per-frame engine cost (issue: one 41-marker subject at L2), in a fresh process with default XLA
     threading: `Engine.step` and `Engine.complete` called as the daemon calls them, on the same frames
-    twice, each time with a fresh engine:
+    three times, each time with a fresh engine:
 
     - paced at the recording's rate, like a live stream. Reports the labels path (`step`: the frame's
       labels known), the pose path (`step` + `complete`: its pose known too) and the CPU time per frame
@@ -286,7 +286,7 @@ def engine_cost(data_dir: Path, cache_dir: str, seconds: float = COST_S) -> dict
     - paced, spinning: paced, but waiting for each frame in a busy loop instead of sleeping, as the
       daemon does with `--busy-poll` (one core kept busy).
 
-    Why both: on this shared virtual machine, code that ran a few milliseconds ago is slow the first time
+    Why three: on this shared virtual machine, code that ran a few milliseconds ago is slow the first time
     it runs again (`idle_penalty`: the first call of a small numpy computation after an 8 ms sleep,
     relative to the same call right after; 1.0 on a machine that keeps its caches), and a paced frame
     is ~100 numpy calls that each pay it once. A core that spins instead of sleeping pays little of it."""
