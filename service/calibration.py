@@ -40,11 +40,13 @@ _SHOULDER_Z, _SHOULDER_Y = 0.815, 0.125
 _UPPERARM, _FOREARM_HAND = 0.186, 0.25
 _KNEE_Z, _ANKLE_Z = 0.285, 0.045
 _FOOT_FWD = 0.11
+_FOOT_LENGTH = 0.16  # heel to toe tip, with a marker's reach: Winter's 0.152 of height
 _PELVIS_RISE = 0.04  # the pelvis's bone across the hips runs this far above the hip joints
 # a marker inside the shoulders' width is an arm marker within this of the estimated arm bones (an upper-arm
 # marker of an arm held against the chest sat 0.045-0.06 from them and went to the torso); above the
 # shoulder joint, less (the acromion marker rides the shoulder girdle, which the torso carries)
 _ARM_BONE_REACH, _ARM_BONE_REACH_TOP = 0.06, 0.045
+ARM_NEIGHBOURS = 2  # (`calibrate`) a marker beside the body, outside its segment's capsule, whose this many nearest markers are one arm segment's, joins it
 # Capsule radius of each segment [fraction of height] for the nearest-bone assignment. The abdomen is
 # narrower than the pelvis (at 0.08 it took the four waist markers of the CMU set, leaving the root none).
 _RADIUS = {
@@ -96,7 +98,7 @@ def _body_frame(P: np.ndarray) -> tuple[BodyFrame, float]:
     foot = z < 0.12
     if foot.sum() < 2:
         raise CalibrationError("no foot markers near the floor: the person is not standing")
-    votes = []
+    votes, strays = [], []
     # the feet are split by the midline between them (the upper body's put a foot of a wide stance under a
     # leaning trunk in the other foot's half: its "toe" was the other foot)
     side_of = (P[:, :2] - P[foot, :2].mean(0)) @ lateral
@@ -105,11 +107,29 @@ def _body_frame(P: np.ndarray) -> tuple[BodyFrame, float]:
         if len(f_idx) < 2:
             continue
         top = f_idx[np.argmax(P[f_idx, 2])]
-        far = f_idx[np.argmax(np.linalg.norm(P[f_idx, :2] - P[top, :2], axis=1))]
-        votes.append((P[far, :2] - P[top, :2]) @ fwd)
-    if not votes:
+        reach = np.linalg.norm(P[f_idx, :2] - P[top, :2], axis=1)
+        far = f_idx[np.argmax(reach)]
+        vote = (P[far, :2] - P[top, :2]) @ fwd
+        # longer than a foot: the other foot, a stride away, fell in its half (a walker's heel-strike frame
+        # weighed 1.7 m where a foot's vote is under 0.2 m, and turned cmu/07_01 around)
+        if reach.max() > _FOOT_LENGTH * h:
+            strays.append(vote)
+            continue
+        # The top marker must sit between the foot's ends (heel and toe: its two markers farthest apart),
+        # nearer the heel. A foot with its toes raised has the toe marker on top, one on tiptoe a low shin
+        # marker, and both then vote backwards (a tennis player turning into his serve faced backwards
+        # on half the seed's frames). The vote counts by how clearly the top marker sits toward one end.
+        d = np.linalg.norm(P[f_idx, None, :2] - P[None, f_idx, :2], axis=2)
+        ends = np.unravel_index(np.argmax(d), d.shape)
+        t = int(np.flatnonzero(f_idx == top)[0])
+        if t in ends:  # (always so with two markers)
+            strays.append(vote)
+            continue
+        near_end, far_end = sorted(d[t, list(ends)])
+        votes.append(vote * (far_end - near_end) / (far_end + near_end))
+    if not votes and not strays:
         raise CalibrationError("no foot markers near the floor: the person is not standing")
-    if sum(votes) < 0:
+    if sum(votes or strays) < 0:  # strays decide only when no foot votes, and the frame is then unsure
         fwd = -fwd
     forward = np.array([fwd[0], fwd[1], 0.0])
     up = np.array([0.0, 0.0, 1.0])
@@ -128,7 +148,9 @@ def _vote_heading(bf: BodyFrame, positions_m: np.ndarray, history_m: np.ndarray,
     total = np.zeros(3)
     ref_ok = np.isfinite(positions_m[:, 0])
     for f in np.linspace(0, len(history_m) - 1, min(n, len(history_m))).astype(int):
-        P = history_m[f]
+        # each frame with its hidden markers filled in from nearby frames: a foot whose toe marker is hidden
+        # votes with its heel for the toe, backwards (cmu/85_12 and a tennis serve at L3 faced backwards)
+        P = fill_reference(history_m, frame=f)
         common = np.flatnonzero(ref_ok & np.isfinite(P[:, 0]))
         if len(common) < 8:
             continue
@@ -249,6 +271,22 @@ def calibrate(
             (sgn * Q[:, 1] > _SHOULDER_Y + 0.03) | ((sgn * Q[:, 1] > 0.09) & (np.minimum(d_up, d_fore) < reach))
         )
         marker_segment[on_arm] = np.where(d_up[on_arm] < d_fore[on_arm], S[f"{side}_upperarm"], S[f"{side}_forearm"])
+        # a hand resting on the hip: its markers off the estimated forearm (the hand turned in), outside
+        # the pelvis's capsule yet nearest to it, go with the arm markers nearest them (cmu/85_12: a wrist
+        # marker calibrated onto the pelvis was lost in the first occlusion after the seed, for good)
+        arm_segs = [S[f"{side}_upperarm"], S[f"{side}_forearm"]]
+        beside = np.isfinite(Q[:, 0]) & (Q[:, 2] > 0.3) & (sgn * Q[:, 1] > 0.09) & ~np.isin(marker_segment, arm_segs)
+        for i in np.flatnonzero(beside):
+            own = marker_segment[i]
+            if cost[i, own] <= 0.0:
+                continue  # inside its segment's capsule
+            d = np.linalg.norm(Q - Q[i], axis=1)
+            d[i] = np.inf
+            d = np.where(np.isfinite(d), d, np.inf)
+            near = np.argsort(d)[:ARM_NEIGHBOURS]
+            k = marker_segment[near[0]]
+            if k in arm_segs and np.all(marker_segment[near] == k) and d[near[-1]] < d[marker_segment == own].min(initial=np.inf):
+                marker_segment[i] = k
     if feet_of is not None:  # the first pass's feet keep their markers (a heel raised mid-stride is not shank)
         on_feet = np.isin(feet_of, [S["l_foot"], S["r_foot"]])
         marker_segment[on_feet] = feet_of[on_feet]
