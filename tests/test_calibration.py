@@ -335,24 +335,13 @@ def test_reassign_moves_a_marker_only_to_a_segment_that_carries_it():
 def _seed_calibration(file: str, subject: str, level: str, seed: int) -> dict[str, str]:
     """{marker: segment} of a subject calibrated from the 2 s seed of a real recording (benchmark corruption),
     the labeled history the engine calibrates from."""
+    from benchmarks.skeleton import seed_calibration
     from recordings.c3d import read_c3d
     from recordings.corruption import corrupt
     from tests.conftest import data_path
 
     seq = corrupt(read_c3d(data_path(file)), level, seed)
-    names = [n for n in seq.marker_names if n.startswith(subject + ":")]
-    index = {seq.marker_names.index(n): k for k, n in enumerate(names)}
-    n_seed = int(round(2.0 * seq.rate_hz))
-    history = np.full((n_seed, len(names), 3), np.nan)
-    for f in range(n_seed):
-        if seq.points_m[f] is None:
-            continue
-        for p, t in zip(seq.points_m[f], seq.truth[f]):
-            if int(t) in index:
-                history[f, index[int(t)]] = p
-    history = history[np.isfinite(history[..., 0]).any(1)]
-    segments = calibrate_from_history(history)[0]
-    return dict(zip((n.split(":")[1] for n in names), (SEGMENTS[k] for k in segments)))
+    return {n.partition(":")[2]: s for n, s in seed_calibration(seq, subject).items()}
 
 
 def test_a_tennis_players_seed_puts_pelvis_thigh_and_hand_markers_on_their_segments():

@@ -43,3 +43,33 @@ def test_the_report_section_counts_seeded_runs_and_says_when_there_is_no_skeleto
     assert "| f.c3d | L2 | seeded | 15.0 / 19.0 | 1 of 2: LWRA->l_upperarm |" in lines
     assert "| f.c3d | L2 | seeded | – | no skeleton |" in lines
     assert lines[-1] == "Seeded runs: 1 of 2 judged markers off their segment (50.0 %)."
+
+
+def test_side_crossed_counts_markers_on_the_other_sides_segments():
+    from benchmarks.skeleton import side_crossed
+
+    facing = {"S:LWRA": "l_forearm", "S:RWRA": "r_forearm", "S:LTHI": "l_thigh", "S:RTHI": "r_thigh", "S:C7": "torso"}
+    turned = {"S:LWRA": "r_forearm", "S:RWRA": "l_forearm", "S:LTHI": "r_thigh", "S:RTHI": "r_thigh", "S:C7": "torso"}
+    assert side_crossed(facing) == (4, 0)
+    assert side_crossed(turned) == (4, 3)  # the torso marker has no side; RTHI stayed
+
+
+def test_calibration_sweep_judges_each_seed_calibration():
+    """Real data: one realization of 85_12 (hands on the hips through the seed; the wrists once went to the
+    pelvis) calibrated as the engine calibrates it from the seed's labels."""
+    from benchmarks.skeleton import calibration_sweep
+    from tests.conftest import data_path
+
+    path = data_path("cmu/85_12.c3d")
+    (row,) = calibration_sweep(path.parent.parent, ["cmu/85_12.c3d"], ["L3"], [15])
+    assert row["calibrated"] and row["judged"] == 33 and not row["backwards"]
+    assert not any(off.startswith(("LWRA", "RWRA")) for off in row["off"]), row["off"]
+
+
+def test_the_sweep_command_refuses_bad_seeds_and_data_in_one_sentence(tmp_path, capsys):
+    from benchmarks.skeleton import main
+
+    assert main(["--seeds", "a-b"]) == 2
+    assert main(["--data", str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(line.startswith("benchmarks.skeleton: ") for line in err)
