@@ -76,6 +76,7 @@ class Job:
     mode: str  # "seeded" | "tpose"
     variant: str
     max_frames: int | None
+    seed: int = CORRUPTION_SEED  # the corruption's (`benchmarks.realizations` runs many)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,8 +124,8 @@ def load(data_dir: str, file: str, max_frames: int | None) -> Recording:
 
 
 @functools.lru_cache(maxsize=4)
-def corrupted(data_dir: str, file: str, level: str, max_frames: int | None) -> CorruptedSequence:
-    return corrupt(load(data_dir, file, max_frames), level, CORRUPTION_SEED)
+def corrupted(data_dir: str, file: str, level: str, max_frames: int | None, seed: int = CORRUPTION_SEED) -> CorruptedSequence:
+    return corrupt(load(data_dir, file, max_frames), level, seed)
 
 
 def frame_time_ns(frame: int, rate_hz: float) -> int:
@@ -159,7 +160,7 @@ def drive(seq: CorruptedSequence, mode: str, step) -> tuple[list[list[str] | Non
 
 def run_job(data_dir: str, job: Job) -> JobResult:
     """One labeler on one corrupted sequence, scored. Exceptions become a failed row, not a dead run."""
-    seq = corrupted(data_dir, job.file, job.level, job.max_frames)
+    seq = corrupted(data_dir, job.file, job.level, job.max_frames, job.seed)
     first = seq.seed_frames if job.mode == "seeded" else 0
     solved = [0, 0]
     subjects: tuple[str, ...] = ()

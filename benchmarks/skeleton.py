@@ -126,7 +126,7 @@ def calibration_sweep(data_dir: Path, files: list[str], levels: list[str], seeds
     return rows
 
 
-def _seeds(text: str) -> list[int]:
+def parse_seeds(text: str) -> list[int]:
     """"0-17" or "1,4,7" or "3" -> seeds."""
     seeds = []
     for part in text.split(","):
@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--verbose", action="store_true", help="list every calibration with a marker off its segment")
     args = parser.parse_args(argv)
     try:
-        seeds = _seeds(args.seeds)
+        seeds = parse_seeds(args.seeds)
         if not args.data.is_dir():
             raise UsageError(f"data directory {args.data} does not exist; pass --data DIR")
         files = select_files(labeled_files(args.data), args.files, quick=False)

@@ -4,6 +4,7 @@ model carries elsewhere."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from benchmarks.skeleton import expected_segment, misplaced, residual_summary
 
@@ -73,3 +74,13 @@ def test_the_sweep_command_refuses_bad_seeds_and_data_in_one_sentence(tmp_path, 
     assert main(["--data", str(tmp_path / "none")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and all(line.startswith("benchmarks.skeleton: ") for line in err)
+
+
+def test_parse_seeds_reads_ranges_and_lists():
+    from benchmarks.skeleton import parse_seeds
+
+    assert parse_seeds("0-3") == [0, 1, 2, 3]
+    assert parse_seeds("1,4,7") == [1, 4, 7]
+    assert parse_seeds("5") == [5]
+    with pytest.raises(ValueError):
+        parse_seeds("a-b")
