@@ -43,6 +43,14 @@ def run(data_dir: Path, files: list[str], levels: list[str], seeds: list[int], w
     return sorted(rows, key=lambda r: (r["file"], r["level"], r["seed"]))
 
 
+def _cells(rows: list[dict]) -> list[str]:
+    """["accuracy mean / worst", "precision mean"] of some runs, in %."""
+    if not rows:
+        return ["–", "–"]
+    return [f"{sum(r['acc'] for r in rows) / len(rows):.2f} / {min(r['acc'] for r in rows):.2f}",
+            f"{sum(r['prec'] for r in rows) / len(rows):.2f}"]
+
+
 def summary(rows: list[dict], before: list[dict] | None = None) -> list[str]:
     """Markdown lines: per file and level, mean / worst accuracy and mean precision (beside `before`'s)."""
     old = {(r["file"], r["level"], r["seed"]): r for r in before or []}
@@ -52,10 +60,9 @@ def summary(rows: list[dict], before: list[dict] | None = None) -> list[str]:
     for r in rows:
         groups.setdefault((r["file"], r["level"]), []).append(r)
     for (file, level), rr in sorted(groups.items()):
-        cells = [f"{sum(r['acc'] for r in rr) / len(rr):.2f} / {min(r['acc'] for r in rr):.2f}", f"{sum(r['prec'] for r in rr) / len(rr):.2f}"]
+        cells = _cells(rr)
         if before:
-            oo = [old[k] for k in ((r["file"], r["level"], r["seed"]) for r in rr) if k in old]
-            cells += [f"{sum(r['acc'] for r in oo) / len(oo):.2f} / {min(r['acc'] for r in oo):.2f}", f"{sum(r['prec'] for r in oo) / len(oo):.2f}"] if oo else ["–", "–"]
+            cells += _cells([old[k] for k in ((r["file"], r["level"], r["seed"]) for r in rr) if k in old])
         lines.append(f"| {file} | {level} | {len(rr)} | " + " | ".join(cells) + " |")
     for level in sorted({r["level"] for r in rows}):
         rr = [r for r in rows if r["level"] == level]

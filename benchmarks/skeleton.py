@@ -75,14 +75,13 @@ def side_crossed(segments: dict[str, str]) -> tuple[int, int]:
     return len(sided), sum(1 for side, s in sided if s[:2] == ("r_" if side == "L" else "l_"))
 
 
-def seed_history(seq, subject: str, seconds: float = 2.0) -> tuple[list[str], np.ndarray]:
-    """(marker names, labeled history (F, M, 3)) of one subject over the first `seconds` of a corrupted
-    recording, each point at its true marker: what the engine calibrates a seeded subject from."""
+def seed_history(seq, subject: str) -> tuple[list[str], np.ndarray]:
+    """(marker names, labeled history (F, M, 3)) of one subject over the seed of a corrupted recording,
+    each point at its true marker: what the engine calibrates a seeded subject from."""
     names = [n for n in seq.marker_names if n.partition(":")[0] == subject]
     index = {seq.marker_names.index(n): k for k, n in enumerate(names)}
-    n_seed = min(int(round(seconds * seq.rate_hz)), len(seq.points_m))
-    history = np.full((n_seed, len(names), 3), np.nan)
-    for f in range(n_seed):
+    history = np.full((seq.seed_frames, len(names), 3), np.nan)
+    for f in range(seq.seed_frames):
         if seq.points_m[f] is None:
             continue
         for p, t in zip(seq.points_m[f], seq.truth[f]):

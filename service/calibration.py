@@ -138,31 +138,41 @@ def _body_frame(P: np.ndarray) -> tuple[BodyFrame, float]:
     return BodyFrame(np.stack([forward, left, up], axis=1), origin, float(h)), abs(float(sum(votes)))
 
 
-def _vote_heading(bf: BodyFrame, positions_m: np.ndarray, history_m: np.ndarray, n: int = 24) -> BodyFrame:
-    """Let up to n frames of the history vote on which way the body faces (at `positions_m`), so that one
-    frame with a foot lifted or an arm across the shoulders cannot turn the subject around. A subject who
-    turned meanwhile is turned back first: each frame's facing is carried onto `positions_m` by the rigid
-    motion of the markers the two share (trimmed: swinging limbs drop out), and the votes are weighted by
-    how sure each frame is (`_body_frame`)."""
-    fwd = bf.R_world_body[:, 0]
-    total = np.zeros(3)
-    ref_ok = np.isfinite(positions_m[:, 0])
+def heading_votes(history_m: np.ndarray, n: int = 24) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Up to n frames of the history, evenly spread, each as (its markers (M, 3), which way it faces (3,)
+    weighted by how sure it is, `_body_frame`), for `_vote_heading`. Each frame's hidden markers are filled
+    in from nearby frames: a foot whose toe marker is hidden votes with its heel for the toe, backwards
+    (cmu/85_12 and a tennis serve at L3 faced backwards). (Computed once per history: a calibration tries
+    several frames, each twice.)"""
+    votes = []
     for f in np.linspace(0, len(history_m) - 1, min(n, len(history_m))).astype(int):
-        # each frame with its hidden markers filled in from nearby frames: a foot whose toe marker is hidden
-        # votes with its heel for the toe, backwards (cmu/85_12 and a tennis serve at L3 faced backwards)
         P = fill_reference(history_m, frame=f)
-        common = np.flatnonzero(ref_ok & np.isfinite(P[:, 0]))
-        if len(common) < 8:
-            continue
         try:
             bf_f, sure = _body_frame(P)
         except CalibrationError:
+            continue
+        votes.append((P, sure * bf_f.R_world_body[:, 0]))
+    return votes
+
+
+def _vote_heading(bf: BodyFrame, positions_m: np.ndarray, votes: list[tuple[np.ndarray, np.ndarray]]) -> BodyFrame:
+    """Let the history's frames (`heading_votes`) vote on which way the body faces (at `positions_m`), so
+    that one frame with a foot lifted or an arm across the shoulders cannot turn the subject around. A
+    subject who turned meanwhile is turned back first: each frame's facing is carried onto `positions_m` by
+    the rigid motion of the markers the two share (trimmed: swinging limbs drop out), and the votes are
+    weighted by how sure each frame is."""
+    fwd = bf.R_world_body[:, 0]
+    total = np.zeros(3)
+    ref_ok = np.isfinite(positions_m[:, 0])
+    for P, facing in votes:
+        common = np.flatnonzero(ref_ok & np.isfinite(P[:, 0]))
+        if len(common) < 8:
             continue
         R, t = rigid_motion(P[common], positions_m[common])
         err = np.linalg.norm(P[common] @ R.T + t - positions_m[common], axis=1)
         keep = common[err <= np.quantile(err, 0.6)]
         R, _ = rigid_motion(P[keep], positions_m[keep])
-        total += sure * (R @ bf_f.R_world_body[:, 0])
+        total += R @ facing
     if total @ fwd >= 0:
         return bf
     R = bf.R_world_body * np.array([-1.0, -1.0, 1.0])  # turn 180 degrees about z
@@ -177,20 +187,21 @@ def _seg_dist(q, a, b):
 
 def calibrate(
     positions_m: np.ndarray, history_m: np.ndarray | None = None, distance_sd: np.ndarray | None = None,
-    feet_of: np.ndarray | None = None,
+    feet_of: np.ndarray | None = None, votes: list | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Skeleton of an upright subject from one frame of its markers (M, 3; NaN = unseen, filled by caller).
     With `history_m` (F, M, 3) showing motion, markers whose nearest bones are close calls go to the
     segment whose markers keep the steadiest distances to them (they move rigidly together);
     `distance_sd`, the history's `_distance_sd` if the caller has it. `feet_of`, the marker segments of a
     first calibration of the same frame: its feet keep their markers, and the legs run to where they stand.
+    `votes`, the history's `heading_votes` if the caller has them.
 
     Returns (marker_segment (M,), marker_offsets_m (M, 3), joint_offsets_m (14, 3), t_world_root_m (3,),
     R_parent_segment (14, 3, 3)) — the calibration pose is the model's zero pose.
     """
     bf = body_frame(positions_m)
     if history_m is not None and len(history_m) >= 10:
-        bf = _vote_heading(bf, positions_m, history_m)
+        bf = _vote_heading(bf, positions_m, heading_votes(history_m) if votes is None else votes)
     h = bf.height_m
     Q = (positions_m - bf.origin_m) @ bf.R_world_body / h  # body coordinates, in heights
     J = {}  # joint positions (segment origins), body coordinates, in heights
@@ -501,6 +512,7 @@ def calibrate_from_history(history_m: np.ndarray):
     full = np.flatnonzero(seen >= seen[first] - 2)
     others = full[np.linspace(0, len(full) - 1, min(CANDIDATE_FRAMES, len(full))).astype(int)]
     sd = _distance_sd(history_m)
+    votes = heading_votes(history_m) if len(history_m) >= 10 else None  # (as `calibrate` would, once)
     best, best_score, first_score = None, np.inf, np.inf
     for i in [first, *sorted(set(others.tolist()) - {first})]:
         ref = fill_reference(history_m, frame=i)
@@ -508,7 +520,7 @@ def calibrate_from_history(history_m: np.ndarray):
         score, result, feet_of = np.inf, None, None
         for _ in range(2):  # legs straight down, then to where the first pass's feet stand; the better counts
             try:
-                seg, off, joints, t_root, R = calibrate(np.where(ok[:, None], ref, np.nan), history_m, sd, feet_of)
+                seg, off, joints, t_root, R = calibrate(np.where(ok[:, None], ref, np.nan), history_m, sd, feet_of, votes)
             except CalibrationError:
                 break
             feet_of = seg
