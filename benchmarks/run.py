@@ -158,6 +158,28 @@ def drive(seq: CorruptedSequence, mode: str, step) -> tuple[list[list[str] | Non
     return given, np.array(times)
 
 
+def engine_step(engine, first: int, solved: list[int] | None = None, fit_rms_mm: list[float] | None = None):
+    """`drive`'s step for an engine: each point's full label ("" = none). Counts frames with a solve in
+    `solved` ([solved, all]) and collects the solves' RMS residual [mm] from frame `first` on."""
+    solved = [0, 0] if solved is None else solved
+    fit_rms_mm = [] if fit_rms_mm is None else fit_rms_mm
+
+    def step(frame):
+        outputs, _ = engine.step(frame)
+        labels = [""] * len(frame.points_m)
+        for out in outputs:
+            for marker, i in zip(out.markers, out.point_index):
+                if i >= 0:
+                    labels[i] = f"{out.subject}:{marker}"
+        solved[0] += any(out.solved for out in outputs)
+        solved[1] += 1
+        if frame.frame >= first:
+            fit_rms_mm.extend(1e3 * out.residual_m for out in outputs if out.solved and np.isfinite(out.residual_m))
+        return labels
+
+    return step
+
+
 def run_job(data_dir: str, job: Job) -> JobResult:
     """One labeler on one corrupted sequence, scored. Exceptions become a failed row, not a dead run."""
     seq = corrupted(data_dir, job.file, job.level, job.max_frames, job.seed)
@@ -173,21 +195,7 @@ def run_job(data_dir: str, job: Job) -> JobResult:
 
             engine = Engine(EngineConfig() if job.variant == "adaptive" else EngineConfig(max_skip_frames=0))
             engine.warm_up()
-
-            def step(frame):
-                outputs, _ = engine.step(frame)
-                labels = [""] * len(frame.points_m)
-                for out in outputs:
-                    for marker, i in zip(out.markers, out.point_index):
-                        if i >= 0:
-                            labels[i] = f"{out.subject}:{marker}"
-                solved[0] += any(out.solved for out in outputs)
-                solved[1] += 1
-                if frame.frame >= first:
-                    fit_rms_mm.extend(1e3 * out.residual_m for out in outputs if out.solved and np.isfinite(out.residual_m))
-                return labels
-
-            given, times = drive(seq, job.mode, step)
+            given, times = drive(seq, job.mode, engine_step(engine, first, solved, fit_rms_mm))
             subjects = tuple(engine.subjects())
             for name in subjects:
                 d = engine.describe(name)

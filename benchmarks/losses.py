@@ -1,0 +1,135 @@
+"""Where one seeded run loses its points: what to look at once `benchmarks.realizations` has shown a run
+that fell.
+
+    python3 -m benchmarks.losses FILE [--level L3] [--seed 13] [--top 12]
+
+Runs the adaptive engine on one corrupted realization (seeded, the file capped at its first 25 s, as the
+benchmark) and lists, from the first scored frame on:
+- the wrong labels, as (label given, marker whose point it was) pairs: frames, first frame;
+- the markers left unlabeled while in view after SETTLE_FRAMES frames running in view (a marker just back
+  from a gap is allowed a few frames), with their spells, and on how many of those frames its name was on
+  another point (a swap, not a loss of track);
+- the markers the seed never showed, which no labeler can name (they are out of the score's ceiling).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import sys
+from pathlib import Path
+
+from benchmarks.run import DEFAULT_DATA, FULL_MAX_S, UsageError, corrupted, drive, engine_step, labeled_files, select_files
+
+#: a marker counts as lost while in view once it has been in view this many frames running
+SETTLE_FRAMES = 10
+
+
+def wrong_pairs(seq, given: list, first: int) -> list[tuple[str, str, int, int]]:
+    """(label given, true label or "" for a ghost's point, frames, first frame), the most frames first."""
+    count: collections.Counter = collections.Counter()
+    start: dict[tuple[str, str], int] = {}
+    for f in range(first, seq.n_frames):
+        if given[f] is None:
+            continue
+        for g, t in zip(given[f], seq.true_labels(f)):
+            if g and g != t:
+                count[(g, t)] += 1
+                start.setdefault((g, t), f)
+    return [(g, t, n, start[(g, t)]) for (g, t), n in count.most_common()]
+
+
+def _spells(frames: list[int]) -> list[tuple[int, int]]:
+    """Runs of consecutive frame numbers as (first, last)."""
+    out: list[tuple[int, int]] = []
+    for f in frames:
+        if out and f == out[-1][1] + 1:
+            out[-1] = (out[-1][0], f)
+        else:
+            out.append((f, f))
+    return out
+
+
+def unlabeled_in_view(seq, given: list, first: int, settle: int = SETTLE_FRAMES) -> list[tuple[str, int, int, list]]:
+    """(true label, frames unlabeled in view, of those the frames its name was on another point, spells),
+    the most frames first. A dropped frame neither counts nor breaks a marker's run in view."""
+    in_view: collections.Counter = collections.Counter()
+    lost: dict[str, list[int]] = collections.defaultdict(list)
+    elsewhere: collections.Counter = collections.Counter()
+    for f in range(seq.n_frames):
+        if seq.truth[f] is None:
+            continue
+        labels = seq.true_labels(f)
+        visible = {t for t in labels if t}
+        for t in list(in_view):
+            if t not in visible:
+                del in_view[t]
+        in_view.update(visible)
+        if f < first or given[f] is None:
+            continue
+        used = set(given[f])
+        for g, t in zip(given[f], labels):
+            if t and not g and in_view[t] > settle:
+                lost[t].append(f)
+                elsewhere[t] += t in used
+    rows = [(t, len(fs), elsewhere[t], _spells(fs)) for t, fs in lost.items()]
+    return sorted(rows, key=lambda r: (-r[1], r[0]))
+
+
+def never_in_seed(seq, first: int) -> list[str]:
+    """True markers seen after the seed but never in its frames: their names are nowhere to learn."""
+    seen_seed, seen_after = set(), set()
+    for f in range(seq.n_frames):
+        if seq.truth[f] is not None:
+            (seen_seed if f < first else seen_after).update(t for t in seq.true_labels(f) if t)
+    return sorted(seen_after - seen_seed)
+
+
+def report(seq, given: list, first: int, top: int = 12) -> list[str]:
+    """The three lists above as text lines (each list cut at `top`)."""
+    lines = [f"{Path(seq.source).name} {seq.level} seed {seq.seed}: scored from frame {first} of {seq.n_frames}", "",
+             "wrong labels (label given  on  the point of):"]
+    pairs = wrong_pairs(seq, given, first)
+    lines += [f"  {g:24s} on {t or 'a ghost':24s} {n:5d} frames, first {f0}" for g, t, n, f0 in pairs[:top]] or ["  none"]
+    lines += ["", f"unlabeled in view (after {SETTLE_FRAMES} frames in view):"]
+    rows = unlabeled_in_view(seq, given, first)
+    lines += [f"  {t:24s} {n:5d} frames, name elsewhere on {e:4d}; spells {spells[:6]}{' ...' if len(spells) > 6 else ''}"
+              for t, n, e, spells in rows[:top]] or ["  none"]
+    missing = never_in_seed(seq, first)
+    lines += ["", "never in the seed: " + (", ".join(missing) if missing else "none")]
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python3 -m benchmarks.losses", description=__doc__.split("\n\n")[0])
+    parser.add_argument("file", help="a labeled recording: a glob or a text its path contains, matching one file")
+    parser.add_argument("--level", default="L3", choices=["L0", "L1", "L2", "L3"])
+    parser.add_argument("--seed", type=int, default=1, help="corruption seed (default 1, the benchmark's)")
+    parser.add_argument("--top", type=int, default=12, help="rows per list (default 12)")
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="directory of the recordings (default ../shared/data)")
+    args = parser.parse_args(argv)
+    try:
+        if not args.data.is_dir():
+            raise UsageError(f"data directory {args.data} does not exist; pass --data DIR")
+        files = select_files(labeled_files(args.data), [args.file], quick=False)
+        if len(files) > 1:
+            raise UsageError(f"{args.file!r} matches {len(files)} files ({', '.join(files)}); name one")
+    except UsageError as e:
+        print(f"benchmarks.losses: {e}", file=sys.stderr)
+        return 2
+    from benchmarks.run import load, _init_worker
+    from service.config import EngineConfig, ServiceConfig
+    from service.engine import Engine
+
+    _init_worker(str(Path(ServiceConfig().cache_dir).expanduser()))  # the benchmark's XLA flags and cache
+    rate = load(str(args.data), files[0], 1).rate_hz
+    seq = corrupted(str(args.data), files[0], args.level, int(round(FULL_MAX_S * rate)), args.seed)
+    engine = Engine(EngineConfig())
+    engine.warm_up()
+    given, _ = drive(seq, "seeded", engine_step(engine, seq.seed_frames))
+    print("\n".join(report(seq, given, seq.seed_frames, args.top)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,70 @@
+"""benchmarks/losses.py: where a run loses its points, on hand-made sequences with known losses, and the
+command's refusals."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from benchmarks.losses import SETTLE_FRAMES, main, never_in_seed, report, unlabeled_in_view, wrong_pairs
+from recordings.corruption import CorruptedSequence
+from tests.conftest import data_path
+
+NAMES = ("s:A", "s:B", "s:C")
+
+
+def _sequence(truth_per_frame):
+    """Frames whose points are the given true marker indices (-1 = a ghost; None = a dropped frame)."""
+    truth = [None if t is None else np.array(t, int) for t in truth_per_frame]
+    points = [None if t is None else np.zeros((len(t), 3)) for t in truth]
+    return CorruptedSequence(points, truth, NAMES, 100.0, "L2", 7, "x/file.c3d")
+
+
+def test_wrong_pairs_count_each_given_label_on_each_true_point_from_the_first_scored_frame():
+    seq = _sequence([[0, 1, -1]] * 6)
+    given = [["s:A", "s:B", ""]] * 2 + [["s:B", "s:A", ""]] * 3 + [["s:A", "s:B", "s:C"]]
+    assert wrong_pairs(seq, given, first=1) == [("s:B", "s:A", 3, 2), ("s:A", "s:B", 3, 2), ("s:C", "", 1, 5)]
+    assert wrong_pairs(seq, given, first=6) == []
+
+
+def test_a_marker_counts_as_lost_in_view_only_after_it_settled_and_a_dropped_frame_breaks_nothing():
+    n = SETTLE_FRAMES + 6
+    truth = [[0, 1]] * n
+    truth[SETTLE_FRAMES + 2] = None  # dropped: neither counted nor a break in B's run in view
+    seq = _sequence(truth)
+    given = []
+    for f in range(n):
+        if truth[f] is None:
+            given.append(None)
+        elif f < SETTLE_FRAMES + 1:
+            given.append(["s:A", "s:B"])
+        else:  # B unlabeled from here; on the last frame its name is on A's point
+            given.append(["s:B" if f == n - 1 else "s:A", ""])
+    rows = unlabeled_in_view(seq, given, first=0)
+    lost = list(range(SETTLE_FRAMES + 1, n))
+    lost.remove(SETTLE_FRAMES + 2)
+    assert rows == [("s:B", len(lost), 1, [(SETTLE_FRAMES + 1, SETTLE_FRAMES + 1), (SETTLE_FRAMES + 3, n - 1)])]
+
+
+def test_a_marker_just_back_in_view_is_not_yet_lost():
+    truth = [[0, 1]] * 5 + [[0]] * 3 + [[0, 1]] * 5  # B hidden three frames, then back but never labeled
+    given = [["s:A", "s:B"]] * 5 + [["s:A"]] * 3 + [["s:A", ""]] * 5
+    assert unlabeled_in_view(_sequence(truth), given, first=0) == []
+
+
+def test_markers_never_in_the_seed_and_the_report():
+    seq = _sequence([[0, -1]] * 3 + [[0, 2]] * 3)
+    given = [["s:A", ""]] * 6
+    assert never_in_seed(seq, first=3) == ["s:C"]
+    text = "\n".join(report(seq, given, first=3))
+    assert "file.c3d L2 seed 7: scored from frame 3 of 6" in text
+    assert "never in the seed: s:C" in text and text.count("  none") == 2
+
+
+def test_the_command_refuses_bad_data_and_files_matching_none_or_several_in_one_sentence(tmp_path, capsys):
+    data = data_path("kineticstoolkit/kinematics_tennis_serve.c3d").parents[1]
+    assert main(["x", "--data", str(tmp_path / "none")]) == 2
+    assert main(["no-such-recording", "--data", str(data)]) == 2
+    assert main(["tennis", "--data", str(data)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 3 and all(line.startswith("benchmarks.losses: ") for line in err), err
+    assert "data directory" in err[0] and "no labeled file matches" in err[1] and "matches 2 files" in err[2]
