@@ -19,7 +19,8 @@ import collections
 import sys
 from pathlib import Path
 
-from benchmarks.run import DEFAULT_DATA, FULL_MAX_S, UsageError, corrupted, drive, engine_step, labeled_files, select_files
+from benchmarks.run import (DEFAULT_DATA, FULL_MAX_S, UsageError, corrupted, drive, engine_step, init_worker,
+                            labeled_files, plan, select_files)
 
 #: a marker counts as lost while in view once it has been in view this many frames running
 SETTLE_FRAMES = 10
@@ -117,13 +118,16 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as e:
         print(f"benchmarks.losses: {e}", file=sys.stderr)
         return 2
-    from benchmarks.run import load, _init_worker
+    jobs, notes = plan(args.data, files, [args.level], FULL_MAX_S)  # the benchmark's cap on the file
+    seeded = [j for j in jobs if j.mode == "seeded"]
+    if not seeded:
+        print(f"benchmarks.losses: {'; '.join(notes) or files[0] + ' has no seeded run'}", file=sys.stderr)
+        return 2
     from service.config import EngineConfig, ServiceConfig
     from service.engine import Engine
 
-    _init_worker(str(Path(ServiceConfig().cache_dir).expanduser()))  # the benchmark's XLA flags and cache
-    rate = load(str(args.data), files[0], 1).rate_hz
-    seq = corrupted(str(args.data), files[0], args.level, int(round(FULL_MAX_S * rate)), args.seed)
+    init_worker(str(Path(ServiceConfig().cache_dir).expanduser()))  # the benchmark's XLA flags and cache
+    seq = corrupted(str(args.data), files[0], args.level, seeded[0].max_frames, args.seed)
     engine = Engine(EngineConfig())
     engine.warm_up()
     given, _ = drive(seq, "seeded", engine_step(engine, seq.seed_frames))

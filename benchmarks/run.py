@@ -223,7 +223,8 @@ def run_job(data_dir: str, job: Job) -> JobResult:
     )
 
 
-def _init_worker(cache_dir: str) -> None:
+def init_worker(cache_dir: str) -> None:
+    """A benchmark process's setup (each pool worker's, and `benchmarks.losses`'): XLA flags, compile cache."""
     os.environ["XLA_FLAGS"] = WORKER_XLA_FLAGS
     from service.daemon import enable_compilation_cache
 
@@ -243,7 +244,7 @@ def run_jobs(data_dir: Path, jobs: list[Job], workers: int, cache_dir: str) -> l
     ordered = sorted(jobs, key=lambda j: -(j.max_frames or 10**6) * weight[j.variant])
     ctx = multiprocessing.get_context("spawn")
     results = []
-    with ctx.Pool(workers, initializer=_init_worker, initargs=(cache_dir,), maxtasksperchild=None) as pool:
+    with ctx.Pool(workers, initializer=init_worker, initargs=(cache_dir,), maxtasksperchild=None) as pool:
         todo = [(str(data_dir), job) for job in ordered]
         for result in tqdm.tqdm(pool.imap_unordered(_run_job_star, todo), total=len(todo), desc="runs",
                                 file=sys.stderr, leave=False):
