@@ -3,6 +3,7 @@ on random data with the awkward cases: unlabeled markers, missing partners, NaN 
 (`kabsch_rms` is checked against a Kabsch by scipy through its wrapper, in test_tracker.)"""
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
@@ -109,8 +110,21 @@ def test_gated_pairs_finds_the_pairs_in_the_gates_and_says_when_there_is_a_choic
     points[2] = [0.06, 0, 0]  # a second point in marker 0's gate: a choice, for the Hungarian method
     rows, cols, cost, n_row, n_col = kernels.gated_pairs(pred, gates, points, np.array([True, True, True, False]))
     assert rows.tolist() == [0, 1] and cols.tolist() == [0, 1, 2]
-    np.testing.assert_allclose(cost, [[kernels.BIG, 0.02**2 / 0.01, 0.06**2 / 0.01], [0.05**2 / 0.01, kernels.BIG, kernels.BIG]])
+    sharp = kernels.GATE_LOG_WEIGHT * np.log(0.1)
+    np.testing.assert_allclose(cost, [[kernels.BIG, 0.02**2 / 0.01 + sharp, 0.06**2 / 0.01 + sharp],
+                                      [0.05**2 / 0.01 + sharp, kernels.BIG, kernels.BIG]])
     assert n_row.tolist() == [2, 1] and n_col.tolist() == [1, 1, 1]
+
+
+def test_a_marker_placed_sharply_takes_a_contested_point_from_one_placed_loosely():
+    # one point, two hidden markers: the waist marker's prediction (gate 7 cm) 6.2 cm off, the hand's (gate
+    # 13.5 cm) 11.6 cm off; the hand is nearer in units of its gate (0.86 < 0.89), the waist far likelier
+    pred = np.array([[0.062, 0, 0], [0, 0.116, 0]])
+    gates = np.array([0.070, 0.135])
+    points = np.zeros((1, 3))
+    rows, cols, cost, _, _ = kernels.gated_pairs(pred, gates, points, np.ones(1, bool))
+    r, c = linear_sum_assignment(cost)
+    assert rows[r].tolist() == [0] and cols[c].tolist() == [0]
 
 
 def test_track_predictions_and_labels_follow_velocity_acceleration_and_the_gate():
