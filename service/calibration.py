@@ -602,6 +602,62 @@ def detect_tpose(points: np.ndarray, free: np.ndarray) -> list[np.ndarray]:
     return [idx[c] for c in clusters(points[idx]) if is_tpose(points[idx[c]])]
 
 
+#: each segment's mirror image across the body's sagittal plane (y = 0 in the rest frames): left and right
+#: limbs swap, the trunk and head mirror onto themselves
+MIRROR_SEGMENT = np.array([S[{"l_": "r_", "r_": "l_"}.get(n[:2], n[:2]) + n[2:]] for n in SEGMENTS])
+_SIDE_PREFIXES = (("Left", "Right"), ("left", "right"))
+_SIDE_SEPARATORS = "_.- "
+
+
+def mirror_name(name: str) -> str | None:
+    """The name of the marker on the other side by the usual conventions, or None if `name` names no side:
+    LHEE / RHEE (Plug-in Gait, CMU), L_HEE, L.Heel, LeftAnkle / RightAnkle, HEE_L / HEE_R, heel.l."""
+    for a, b in _SIDE_PREFIXES:
+        for x, y in ((a, b), (b, a)):
+            if name.startswith(x) and len(name) > len(x):
+                return y + name[len(x):]
+    if len(name) > 1 and name[0] in "LR" and (name[1].isupper() or name[1].isdigit() or name[1] in _SIDE_SEPARATORS):
+        return {"L": "R", "R": "L"}[name[0]] + name[1:]
+    if len(name) > 2 and name[-1] in "LRlr" and name[-2] in _SIDE_SEPARATORS:
+        return name[:-1] + {"L": "R", "R": "L", "l": "r", "r": "l"}[name[-1]]
+    return None
+
+
+def mirrored_markers(markers, marker_segment: np.ndarray, marker_offsets_m: np.ndarray, clear_m: float
+                     ) -> list[tuple[str, int, np.ndarray]]:
+    """The markers a subject's names imply but its model lacks (RBHD for a model with LBHD and no RBHD: a
+    marker hidden through the whole seed), as (name, segment, offset): where the named marker's mirror image
+    sits. The image is taken across the plane the subject's own pairs show: the named pairs between the
+    marker's segment and its mirror segment (LFHD and RFHD for a head marker; the toes and heels for a foot),
+    with the joint onto the joint, place the mirror segment by Kabsch (flipping y in the rest frames alone
+    left RBHD 6 cm off on the tennis serve: a head turned in the seed turns its frame). Left out: an image
+    within `clear_m` of a marker the model has on that segment (a midline marker's image is itself,
+    whatever its name), and names its markers imply twice."""
+    have = {name: i for i, name in enumerate(markers)}
+    flip = np.array([1.0, -1.0, 1.0])
+    found: dict[str, tuple[str, int, np.ndarray] | None] = {}
+    for name, k, off in zip(markers, marker_segment, marker_offsets_m):
+        other = mirror_name(name)
+        if other is None or other in have or k < 0:
+            continue
+        seg = int(MIRROR_SEGMENT[k])
+        src, dst = [np.zeros(3)], [np.zeros(3)]  # the joint onto the joint
+        for a, i in have.items():
+            j = have.get(mirror_name(a) or "")
+            if j is not None and marker_segment[i] == k and marker_segment[j] == seg:
+                src.append(marker_offsets_m[i] * flip)
+                dst.append(marker_offsets_m[j])
+        image = off * flip
+        if len(src) >= 3:
+            R, t = rigid_motion(np.array(src), np.array(dst))
+            image = R @ image + t
+        mine = marker_offsets_m[marker_segment == seg]
+        if len(mine) and np.min(np.linalg.norm(mine - image, axis=1)) < clear_m:
+            continue
+        found[other] = None if other in found else (other, seg, image)
+    return [v for v in found.values() if v is not None]
+
+
 def world_transforms(t_root: np.ndarray, R_parent_segment: np.ndarray, joint_offsets: np.ndarray):
     """World rotations (..., 14, 3, 3) and origins (..., 14, 3) of the segments, for one pose or a batch."""
     Rs = np.empty(R_parent_segment.shape)

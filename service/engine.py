@@ -100,6 +100,14 @@ CALIBRATE_APPLY_S = 0.5
 #: subjects 88 / 205 / 248 ms, against 7.5 / 10 / 19 ms at 0.45).
 HELPER_JOB_S = 0.45
 DISCOVER_FRAMES = 60  # frames an unexplained point must ride on an automatic subject to become a marker
+#: (`_name_mirrors`) a free point this near a named marker's mirror image may be its twin (the tennis
+#: player's RBHD sat 2.5-2.8 cm from LBHD's; an unnamed point of HDM_mm 3.1-3.6 cm from RBAC's: a thin
+#: margin, so the looks below must agree too), looked for every 3rd frame, on the last frame's state (not to
+#: hold up the labels' publication), and is, once it has ridden on the body there MIRROR_FRAMES looks
+#: (a ghost track near the body did for 10 at L2; none for 15 in the 288 + 48 runs of benchmarks.realizations)
+MIRROR_GATE_M = 0.03
+MIRROR_EVERY_FRAMES = 3
+MIRROR_FRAMES = 15
 #: Subjects are given phases 0..PHASES-1 (`tracker.new_state`), so the tracker's periodic work (every 2nd,
 #: 3rd, 4th frame) falls on different frames for different subjects: 12 covers every period it uses.
 PHASES = 12
@@ -120,6 +128,7 @@ class _Subject:
     auto: bool = False  # created from a T-pose: its markers are its own, and it may discover more
     candidates: list = dataclasses.field(default_factory=list)  # unexplained point tracks: [last frame, positions]
     trial: _Trial | None = None  # a subject just found in a T-pose, until its window ends (`_Trial`)
+    mirrors: list | None = None  # a labeled subject's markers its names imply but its seed never showed (`_name_mirrors`)
 
 
 @dataclasses.dataclass
@@ -333,6 +342,8 @@ class Engine:
                         self._judge(s, frame, points, free)
                     else:
                         self._discover(s, frame, points, free)
+                elif s.model.has_skeleton and s.state.frames % MIRROR_EVERY_FRAMES == 0:
+                    self._name_mirrors(s, frame, points, free)
         if self.config.tpose_auto and labels is None:
             for name in self._find_tposes(frame, points, free):
                 new_subjects.append(name)
@@ -569,6 +580,61 @@ class Engine:
                 return
             del track[: len(track) - DISCOVER_FRAMES]  # keep testing the most recent window
 
+    def _name_mirrors(self, s: _Subject, frame, points, free) -> None:
+        """A labeled subject's marker hidden through its whole seed has a name nowhere to learn from, but
+        its mirror image often has one: a point that rides on the body where LBHD's image across the
+        sagittal plane is, for MIRROR_FRAMES looks, and where no marker of the subject was last, becomes
+        RBHD (`calibration.mirrored_markers`). (Tennis serve, L2: RBHD hidden through the 2 s seed of one
+        corrupted realization was never labeled in its 755 frames in view.)"""
+        st, model = s.state, s.model
+        if s.mirrors is None:
+            s.mirrors = calibration.mirrored_markers(model.markers, model.marker_segment, model.marker_offsets_m,
+                                                     1.5 * MIRROR_GATE_M)
+            s.candidates = []
+        idx = np.flatnonzero(free)
+        if not s.mirrors or not len(idx) or not st.labeled.any():
+            return
+        # where its segment's labeled markers place each image (the last fit's pose can be 10 frames old,
+        # and lagged a head 5-17 cm behind in a tennis serve); two markers, with the joint where the fit is
+        pose = (st.t_root_m, st.R_parent_segment, model.joint_offsets_m)
+        ps = kernels.world_transforms(*(np.require(a, np.float64, "CW") for a in pose), tracker._PARENTS)[1]
+        where = np.full((len(s.mirrors), 3), np.nan)
+        for r, (_, k, off) in enumerate(s.mirrors):
+            lab = np.flatnonzero((model.marker_segment == k) & st.labeled)
+            if len(lab) >= 2:
+                a, b = model.marker_offsets_m[lab], st.pos_m[lab]
+                if len(lab) == 2:
+                    a, b = np.vstack([a, np.zeros(3)]), np.vstack([b, ps[k]])
+                R, t = calibration.rigid_motion(a, b)
+                where[r] = R @ off + t
+        d = np.linalg.norm(points[idx, None] - where[None], axis=2)
+        near = d.min(0) < MIRROR_GATE_M
+        if not near.any():
+            return
+        # not where a marker of the subject was last (one back from hiding, not yet re-acquired)
+        known = st.pos_m[st.ever_seen]
+        f = st.frames
+        tracks = {c[0]: c for c in s.candidates if f - c[1] <= 4 * MIRROR_EVERY_FRAMES}  # (may miss 3 looks)
+        for r in np.flatnonzero(near):
+            j = idx[int(np.argmin(d[:, r]))]
+            if len(known) and np.min(np.linalg.norm(known - points[j], axis=1)) < MIRROR_GATE_M:
+                continue
+            name = s.mirrors[r][0]
+            entry = (f, points[j], st.pos_m.copy(), st.labeled.copy())
+            c = tracks.get(name)
+            if c is not None and np.linalg.norm(c[2][-1][1] - points[j]) < 2 * MIRROR_GATE_M:  # (moved since)
+                c[1] = f
+                c[2].append(entry)
+            else:
+                c = tracks[name] = [name, f, [entry]]
+            if len(c[2]) >= MIRROR_FRAMES:
+                if self._rides_on_body(c[2]):
+                    self._add_markers(s, frame, [c[2]], [s.mirrors[r][:2]])
+                    s.mirrors = None  # (the snapshots have the old marker count)
+                    return
+                del c[2][: len(c[2]) - MIRROR_FRAMES]  # keep testing the most recent window
+        s.candidates = list(tracks.values())
+
     @staticmethod
     def _rides_on_body(track) -> bool:
         """The track keeps its distance to its 3 nearest subject markers within 8 mm over the window."""
@@ -620,9 +686,10 @@ class Engine:
         _, quats, angles = s.pose_cache
         return dict(root_position_m=np.asarray(st.t_root_m, np.float32), rotations_xyzw=quats, joint_angles_rad=angles)
 
-    def _add_markers(self, s: _Subject, frame, tracks) -> None:
-        """Grow an automatic subject by the markers of these point tracks ([(frame count, position, ...)],
-        the last entry of this frame or earlier), each under its own next id, keeping the tracking state."""
+    def _add_markers(self, s: _Subject, frame, tracks, named: list[tuple[str, int]] | None = None) -> None:
+        """Grow a subject by the markers of these point tracks ([(frame count, position, ...)], the last
+        entry of this frame or earlier), keeping the tracking state: each under its own next id on the
+        segment of the nearest marker, or under the (name, segment) `named` gives it."""
         tracker.collect(s.model, s.state)  # the pose of the fit in flight, before the state is rebuilt
         old = s.state
         markers, seg, off = list(s.model.markers), list(s.model.marker_segment), list(s.model.marker_offsets_m)
@@ -631,18 +698,20 @@ class Engine:
         cols = []
         if s.model.has_skeleton:
             Rs, ps = calibration.world_transforms(old.t_root_m, old.R_parent_segment, s.model.joint_offsets_m)
-        for track in tracks:
+        for n, track in enumerate(tracks):
             name = f"M{len(markers):02d}"
             while name in markers:
                 name = name + "b"
-            markers.append(name)
             f, p_new = track[-1][0], track[-1][1]
             seg.append(0)
             off.append(np.zeros(3))
-            if s.model.has_skeleton:  # ride on the segment of the nearest marker, at its current offset
-                near = int(np.argmin(np.linalg.norm(old.pos_m - p_new, axis=1)))
-                seg[-1] = s.model.marker_segment[near]
+            if named is not None:
+                name, seg[-1] = named[n]
+            elif s.model.has_skeleton:  # ride on the segment of the nearest marker
+                seg[-1] = s.model.marker_segment[int(np.argmin(np.linalg.norm(old.pos_m - p_new, axis=1)))]
+            if s.model.has_skeleton:  # at its current offset
                 off[-1] = Rs[seg[-1]].T @ (p_new - ps[seg[-1]])
+            markers.append(name)
             cur.append((p_new if f == old.frames else np.full(3, np.nan))[None])
             recent = {e[0]: e[1] for e in track}
             cols.append(np.array([recent.get(f0 + k, np.full(3, np.nan)) for k in range(len(s.history))]))

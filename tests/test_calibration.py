@@ -12,7 +12,7 @@ from protocol.skeleton import N_SEGMENTS, SEGMENTS
 from recordings.synthetic import multi_perform, perform
 from service.calibration import (
     S, CalibrationError, _distance_sd, _uncross_sides, body_frame, calibrate, calibrate_from_history, clusters,
-    detect_tpose, fill_reference, is_tpose,
+    detect_tpose, fill_reference, is_tpose, mirror_name, mirrored_markers,
 )
 
 MARKER_SETS = ("cmu41", "gt53")
@@ -434,3 +434,26 @@ def test_a_wide_stance_puts_shin_and_toe_markers_on_shank_and_foot():
     want = {"RSHN": "r_shank", "LSHN": "l_shank", "RKNE": "r_thigh", "LKNE": "l_thigh",
             "RTOE": "r_foot", "RMT5": "r_foot", "RANK": "r_foot", "RHEE": "r_foot"}
     assert {k: got[k] for k in want} == want
+
+
+@pytest.mark.parametrize("name, other", [("LBHD", "RBHD"), ("RHEE", "LHEE"), ("L_HEE", "R_HEE"), ("L.Knee", "R.Knee"),
+                                         ("LeftAnkle", "RightAnkle"), ("rightknee", "leftknee"), ("HEE_L", "HEE_R"),
+                                         ("heel.r", "heel.l"), ("C7", None), ("CLAV", None), ("STRN", None), ("L", None),
+                                         ("Lx", None), ("HEEL", None)])
+def test_mirror_name_follows_the_usual_side_conventions(name, other):
+    assert mirror_name(name) == other
+
+
+def test_mirrored_markers_are_the_images_of_named_markers_the_model_lacks():
+    head, lfoot, rfoot, torso = (SEGMENTS.index(n) for n in ("head", "l_foot", "r_foot", "torso"))
+    markers = ("LBHD", "RFHD", "LFHD", "LHEE", "RBAC", "LOWBACK", "C7")
+    seg = np.array([head, head, head, lfoot, torso, torso, torso])
+    off = np.array([[-0.07, 0.05, 0.1], [0.09, -0.05, 0.1], [0.09, 0.05, 0.1], [-0.05, 0.0, -0.06],
+                    [-0.1, -0.08, 0.3], [-0.1, 0.005, 0.1], [-0.1, 0.0, 0.4]])
+    got = {name: (k, o) for name, k, o in mirrored_markers(markers, seg, off, 0.06)}
+    # RBHD on the head, RHEE on the right foot, LBAC on the torso: each its marker's image (y negated);
+    # LOWBACK's image is itself (a midline marker), C7 names no side
+    assert sorted(got) == ["LBAC", "RBHD", "RHEE"]
+    assert got["RHEE"][0] == rfoot and got["RBHD"][0] == head
+    np.testing.assert_allclose(got["RBHD"][1], [-0.07, -0.05, 0.1])
+    np.testing.assert_allclose(got["RHEE"][1], [-0.05, 0.0, -0.06])
