@@ -601,13 +601,12 @@ class Engine:
         # have none: 0.09 ms a look on 135_02 with every image placed, 41 markers)
         pose = (st.t_root_m, st.R_parent_segment, model.joint_offsets_m)
         Rs, ps = kernels.world_transforms(*(np.require(a, np.float64, "CW") for a in pose), tracker._PARENTS)
-        where = np.array([Rs[k] @ off + ps[k] for _, k, off in s.mirrors])
-        reach = np.linalg.norm(points[idx, None] - where[None], axis=2).min(0) < MIRROR_REACH_M
-        where[~reach] = np.nan
+        by_fit = np.array([Rs[k] @ off + ps[k] for _, k, off in s.mirrors])
+        reach = np.linalg.norm(points[idx, None] - by_fit[None], axis=2).min(0) < MIRROR_REACH_M
+        where = np.full_like(by_fit, np.nan)
         for r in np.flatnonzero(reach):
             _, k, off = s.mirrors[r]
             lab = np.flatnonzero((model.marker_segment == k) & st.labeled)
-            where[r] = np.nan
             if len(lab) >= 2:
                 a, b = model.marker_offsets_m[lab], st.pos_m[lab]
                 if len(lab) == 2:
