@@ -130,6 +130,7 @@ class _Subject:
     candidates: list = dataclasses.field(default_factory=list)  # unexplained point tracks: [last frame, positions]
     trial: _Trial | None = None  # a subject just found in a T-pose, until its window ends (`_Trial`)
     mirrors: list | None = None  # a labeled subject's markers its names imply but its seed never showed (`_name_mirrors`)
+    mirror_tracks: dict = dataclasses.field(default_factory=dict)  # their candidate points: {name: [last look, track]}
 
 
 @dataclasses.dataclass
@@ -591,9 +592,11 @@ class Engine:
         if s.mirrors is None:
             s.mirrors = calibration.mirrored_markers(model.markers, model.marker_segment, model.marker_offsets_m,
                                                      1.5 * MIRROR_GATE_M)
-            s.candidates = []
+            s.mirror_tracks = {}
+        if not s.mirrors or not st.labeled.any():
+            return
         idx = np.flatnonzero(free)
-        if not s.mirrors or not len(idx) or not st.labeled.any():
+        if not len(idx):
             return
         # where its segment's labeled markers place each image (the last fit's pose can be 10 frames old,
         # and lagged a head 5-17 cm behind in a tennis serve); two markers, with the joint where the fit is.
@@ -620,7 +623,7 @@ class Engine:
         # not where a marker of the subject was last (one back from hiding, not yet re-acquired)
         known = st.pos_m[st.ever_seen]
         f = st.frames
-        tracks = {c[0]: c for c in s.candidates if f - c[1] <= 4 * MIRROR_EVERY_FRAMES}  # (may miss 3 looks)
+        tracks = {n: c for n, c in s.mirror_tracks.items() if f - c[0] <= 4 * MIRROR_EVERY_FRAMES}  # (may miss 3 looks)
         for r in np.flatnonzero(near):
             j = idx[int(np.argmin(d[:, r]))]
             if len(known) and np.min(np.linalg.norm(known - points[j], axis=1)) < MIRROR_GATE_M:
@@ -628,18 +631,19 @@ class Engine:
             name = s.mirrors[r][0]
             entry = (f, points[j], st.pos_m.copy(), st.labeled.copy())
             c = tracks.get(name)
-            if c is not None and np.linalg.norm(c[2][-1][1] - points[j]) < 2 * MIRROR_GATE_M:  # (moved since)
-                c[1] = f
-                c[2].append(entry)
+            if c is not None and np.linalg.norm(c[1][-1][1] - points[j]) < 2 * MIRROR_GATE_M:  # (moved since)
+                c[0] = f
+                c[1].append(entry)
             else:
-                c = tracks[name] = [name, f, [entry]]
-            if len(c[2]) >= MIRROR_FRAMES:
-                if self._rides_on_body(c[2]):
-                    self._add_markers(s, frame, [c[2]], [s.mirrors[r][:2]])
+                c = tracks[name] = [f, [entry]]
+            track = c[1]
+            if len(track) >= MIRROR_FRAMES:
+                if self._rides_on_body(track):
+                    self._add_markers(s, frame, [track], [s.mirrors[r][:2]])
                     s.mirrors = None  # (the snapshots have the old marker count)
                     return
-                del c[2][: len(c[2]) - MIRROR_FRAMES]  # keep testing the most recent window
-        s.candidates = list(tracks.values())
+                del track[: len(track) - MIRROR_FRAMES]  # keep testing the most recent window
+        s.mirror_tracks = tracks
 
     @staticmethod
     def _rides_on_body(track) -> bool:
