@@ -173,9 +173,10 @@ RESEAT_MISFIT_FACTOR = 3.0
 RESEAT_SHARE = 0.35  # ... and fit it within this share of that misfit (or the residual) with one label left out ...
 RESEAT_RADIUS_M = 0.02  # ... has that label moved to a point this close to where the others put it
 COMPLETE_FIT_FACTOR = 3.0  # (`_complete_by_free_point`) a labeling whose three points fit the layout within this times its markers' residual ...
+COMPLETE_FIT_FLOOR_M = 0.005  # ... or this [m] RMS, whichever is more ...
 COMPLETE_JOINT_RMS_M = 0.02  # ... and whose markers and joint fit the offsets this well [m] RMS ...
-COMPLETE_PAIR_MISFIT_M = 0.01  # ... is taken unrivalled when the labeled pair's distance misfits the layout's by this much [m] ...
-COMPLETE_UNRIVALLED_JOINT_M = 0.1  # ... and the joint fits within this [m] RMS (the pair is wrong: the joint only guards)
+COMPLETE_PAIR_MISFIT_M = 0.01  # ... is taken, rivalled or not, when the labeled pair's distance misfits the layout's by this much [m] ...
+COMPLETE_WRONG_PAIR_JOINT_M = 0.1  # ... and the joint fits within this [m] RMS (the pair is wrong: the joint only guards)
 SHAPE_CONFIRM = 2  # ... when the same relabelling wins this many checks running
 #: A fit that followed permuted labels takes several solves to turn the segment back once the layout checks
 #: have put them right: meanwhile its predictions sit where the old labels were, and the skeleton's unswap
@@ -1041,18 +1042,20 @@ def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndar
     with two labeled markers and unlabeled ones, the two points, each free point within the segment's
     reach and the joint where the latest fit puts it are registered onto the segment's markers under
     every way of labeling the points from them. A labeling counts if its three points fit the calibrated
-    layout within COMPLETE_FIT_FACTOR times its markers' calibration residual; the one whose joint then
+    layout within COMPLETE_FIT_FACTOR times its markers' calibration residual (at least
+    COMPLETE_FIT_FLOOR_M: skin and joint motion the seed did not show); the one whose joint then
     fits best is taken if it permutes the two labels, fits within COMPLETE_JOINT_RMS_M, and another
     labeling of the two points fits the layout too but puts the joint clearly farther off: the ambiguity
     the joint resolves (heel, toe and fifth metatarsal make a near-isosceles triangle; its mirror image
-    fits it as well). Where no other labeling
-    fits the layout, the free point is as likely a stray one completing a wrong triangle (a torso's
-    markers at L2): left alone, unless the two labels themselves misfit the layout's distance between
-    them by COMPLETE_PAIR_MISFIT_M (a tennis wrist marker re-acquired on its neighbour's point after the
-    serve, 29 mm off, stayed there 40 frames with its own point free beside it). The pair is wrong then,
-    and the joint only guards against a far-fetched triangle (COMPLETE_UNRIVALLED_JOINT_M): a skeleton
+    fits it as well). Where no other labeling fits the layout, the free point is as likely a stray one
+    completing a wrong triangle (a torso's markers at L2): left alone, unless the two labels themselves
+    misfit the layout's distance between them by COMPLETE_PAIR_MISFIT_M (a tennis wrist marker
+    re-acquired on its neighbour's point after the serve, 29 mm off, stayed there 40 frames with its own
+    point free beside it). The pair is wrong then, rivalled or not: the joint still tells rivals apart,
+    but otherwise only guards against a far-fetched triangle (COMPLETE_WRONG_PAIR_JOINT_M). A skeleton
     fitting at 20-30 mm put a tennis player's ankle joint 5-9 cm from a heel label on the toe's point,
-    which stayed there 2.3 s. As in `_relabel_by_shape`, the same relabelling must win SHAPE_CONFIRM
+    which stayed there 2.3 s; once the floor let a wrong labeling, its joint 12 cm off, fit a forearm's
+    layout too, wrist labels on the finger's and forearm's points (joint 44 mm off) stayed there 5 s. As in `_relabel_by_shape`, the same relabelling must win SHAPE_CONFIRM
     checks running on a trusted layout, and the long-run partner distances must not object; the free
     point's label is on probation."""
     slots = _layout_slots(model, st)
@@ -1087,15 +1090,17 @@ def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndar
         rms3 = _kabsch_rms(np.repeat(layout[slot[maps]], P, axis=0), B[:, 1:], np.ones((C * P, 3), bool)).reshape(C, P)
         A = np.concatenate([joint, np.repeat(model.marker_offsets_m[slot[maps]], P, axis=0)], axis=1)
         rms4 = _kabsch_rms(A, B, np.ones((C * P, 4), bool)).reshape(C, P)
-        tight = _layout_tolerance(model, slot)
+        # (a floor: a foot's layout, measured to 0.9 mm in the seed, fitted its true labels to 3.7 mm once the
+        # ankle flexed, and a toe label stayed on the fifth metatarsal's point 1.7 s; 85_12 at L3)
+        tight = max(_layout_tolerance(model, slot), COMPLETE_FIT_FLOOR_M)
         score = np.where(rms3 <= tight, rms4, np.inf)
         c, p = np.unravel_index(int(np.argmin(score)), score.shape)
         other = (maps[:, 0] != maps[c, 0]) | (maps[:, 1] != maps[c, 1])  # another labeling of the two points
         rival = score[other].min() if other.any() else np.inf
         pair_misfit = abs(_norm(cur[lab[0]] - cur[lab[1]]) - _norm(layout[lab[0]] - layout[lab[1]]))
-        unrivalled = not np.isfinite(rival) and pair_misfit >= COMPLETE_PAIR_MISFIT_M
-        if not ((np.isfinite(rival) or unrivalled) and (maps[c, 0], maps[c, 1]) != (0, 1) and rival >= 2.0 * score[c, p] + SHAPE_CLEAR_MIN_M
-                and score[c, p] <= (COMPLETE_UNRIVALLED_JOINT_M if unrivalled else COMPLETE_JOINT_RMS_M)):
+        wrong_pair = pair_misfit >= COMPLETE_PAIR_MISFIT_M
+        if not ((np.isfinite(rival) or wrong_pair) and (maps[c, 0], maps[c, 1]) != (0, 1) and rival >= 2.0 * score[c, p] + SHAPE_CLEAR_MIN_M
+                and score[c, p] <= (COMPLETE_WRONG_PAIR_JOINT_M if wrong_pair else COMPLETE_JOINT_RMS_M)):
             st.complete_votes.pop(int(k), None)
             continue
         new = (int(slot[maps[c, 0]]), int(slot[maps[c, 1]]), int(slot[maps[c, 2]]), int(near[p]))

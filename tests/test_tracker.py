@@ -562,15 +562,24 @@ def _right_foot(heel_m, toe_m, mt5_m):
     return perf, model, R, points, ps[k]
 
 
-def test_two_labels_swapped_on_a_mirror_symmetric_foot_are_put_back_by_its_joint_and_a_free_point():
+@pytest.mark.parametrize("heel_off_m", [0.0, 0.007])
+def test_two_labels_swapped_on_a_mirror_symmetric_foot_are_put_back_by_its_joint_and_a_free_point(heel_off_m):
     """A foot whose toe and fifth metatarsal markers are mirror images about the plane of its heel marker
     and ankle: with the heel hidden, the toe and metatarsal labels swapped fit every layout distance. The
     heel's point, in view and free, and the ankle where the fit puts it tell them apart (their mirror image
     is no rotation of them): after SHAPE_CONFIRM checks the two labels are swapped back and the heel
-    labeled. Correct labels are left alone, and so are swapped ones with no free point to tell."""
+    labeled. Correct labels are left alone, and so are swapped ones with no free point to tell. Also with
+    the heel's point 7 mm off its place in a layout calibrated to 1 mm (skin and ankle motion the seed did
+    not show): the triangle then misfits the layout by more than COMPLETE_FIT_FACTOR times its residual,
+    within COMPLETE_FIT_FLOOR_M."""
     perf, model, R, points, ankle = _right_foot([-0.07, 0.0, -0.04], [0.12, 0.035, -0.045], [0.12, -0.035, -0.045])
     m = len(perf.marker_names)
     heel, toe, mt5 = foot = [perf.marker_names.index(n) for n in ("RHEE", "RTOE", "RMT5")]
+    back = points[heel] - points[[toe, mt5]].mean(0)
+    points[heel] += heel_off_m * back / np.linalg.norm(back)  # the foot 7 mm longer
+    misfit = tracker._kabsch_rms(model.layout_offsets_m[foot][None], points[foot][None], np.ones((1, 3), bool))[0]
+    assert misfit < tracker.COMPLETE_FIT_FLOOR_M
+    assert (misfit > tracker.COMPLETE_FIT_FACTOR * 0.001) == (heel_off_m > 0)
     points = np.vstack([points, ankle + [0.0, 0.0, 1.5]])  # a stray free point, far from the foot
     st = tracker.new_state(model, points[:m], t_ns(0))
     st.t_root_m, st.R_parent_segment = perf.root_position_m[0], R
@@ -603,25 +612,39 @@ def test_two_labels_swapped_on_a_mirror_symmetric_foot_are_put_back_by_its_joint
     assert st.provisional[heel] == tracker.PROBATION_FRAMES
 
 
-def test_a_label_on_a_hidden_neighbours_point_is_put_back_by_the_free_point_though_the_fit_is_off():
+@pytest.mark.parametrize("rival", [False, True])
+def test_a_label_on_a_hidden_neighbours_point_is_put_back_by_the_free_point_though_the_fit_is_off(rival):
     """A foot's toe label re-acquired on the heel's point (the heel hidden, the toe's own point free beside
     it), as a tennis player's heel label sat on the toe's point for 2.3 s: the fifth metatarsal and the
-    point called toe are 3 cm farther apart than the layout's metatarsal and toe, so the pair is wrong, and
-    no other labeling of the two points with a free one fits the layout (no rival). The free point then
-    completes the foot even with the fit's ankle 5 cm off (a skeleton fitting at 20-30 mm): the heel label
-    takes its point and the toe label the free one, after SHAPE_CONFIRM checks. Correct labels are left
-    alone, and so is the pair with the fit's ankle 30 cm off (a far-fetched triangle)."""
+    point called toe are 3 cm farther apart than the layout's metatarsal and toe, so the pair is wrong. The
+    free point then completes the foot even with the fit's ankle 5 cm off (a skeleton fitting at 20-30 mm):
+    the heel label takes its point and the toe label the free one, after SHAPE_CONFIRM checks. Correct
+    labels are left alone, and so is the pair with the fit's ankle 30 cm off (a far-fetched triangle).
+    Also with a ghost where the foot's mirror image puts the toe, so that a wrong labeling of the two points
+    fits the layout as well (a rival): the joint, clearly farther off for it, still tells them apart."""
     perf, model, R, points, _ = _right_foot([-0.07, 0.0, -0.04], [0.14, 0.02, -0.045], [0.09, -0.04, -0.045])
     m = len(perf.marker_names)
     heel, toe, mt5 = (perf.marker_names.index(n) for n in ("RHEE", "RTOE", "RMT5"))
+    if rival:
+        # the half turn about an axis in the foot's plane that swaps the heel's and metatarsal's points takes
+        # the toe's point here: heel and metatarsal labels swapped, with this ghost as the toe, fit the layout
+        # (the ankle, turned with them, lands below the foot)
+        c, a = (points[heel] + points[mt5]) / 2, points[heel] - points[mt5]
+        n = np.cross(np.cross(a, points[toe] - points[mt5]), a)
+        n /= np.linalg.norm(n)
+        ghost = c + 2.0 * n * (n @ (points[toe] - c)) - (points[toe] - c)
+        points = np.vstack([points, ghost])
+        fits = tracker._kabsch_rms(model.layout_offsets_m[[heel, mt5, toe]][None], points[[mt5, heel, m]][None],
+                                   np.ones((1, 3), bool))[0]
+        assert fits < 1e-6
     right = np.arange(m)
     right[heel] = -1  # the heel hidden from the labels; its point is free
     wrong = right.copy()
     wrong[toe], wrong[heel] = heel, -1  # the toe label on the heel's point, the toe's point free
 
     def run(point_index, shift_m):
-        st = tracker.new_state(model, points, t_ns(0))
-        st.t_root_m, st.R_parent_segment = perf.root_position_m[0] + [shift_m, 0.0, 0.0], R
+        st = tracker.new_state(model, points[:m], t_ns(0))
+        st.t_root_m, st.R_parent_segment = perf.root_position_m[0] + [0.0, 0.0, shift_m], R
         st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
         changed = np.zeros(m, bool)
         for _ in range(tracker.SHAPE_CONFIRM + 1):
