@@ -161,9 +161,11 @@ SHAPE_CLEAR_MIN_LABELS = 3
 SHAPE_CLEAR_LAYOUT_M = 0.0025
 # ... or within SHAPE_CLEAR_HANDOVER_LAYOUT_M for a relabelling that hands a label to an unlabeled marker (a
 # toe label on the fifth metatarsal's point of a foot calibrated to 4 mm: 12-15 mm misfit, 4 mm handed over,
-# 85_02 at L2, for 1.5 s; among labeled markers alone, a wrist pair 6-11 mm apart in a 4 mm layout was
-# swapped wrongly, 135_02 at L3)
-SHAPE_CLEAR_HANDOVER_LAYOUT_M = 0.0045
+# 85_02 at L2, for 1.5 s; a wrist label on the other wrist marker's point of a forearm calibrated to 4.7 mm:
+# 20 mm misfit, 5 mm handed over, 135_02 at L3, for 4 s; among labeled markers alone, a wrist pair 6-11 mm
+# apart in a 4 mm layout was swapped wrongly, 135_02 at L3. Dev suite, 18 realizations: at 4.5 mm L3 97.925 %,
+# at 6 or 8 mm 97.932 %, six runs moved.)
+SHAPE_CLEAR_HANDOVER_LAYOUT_M = 0.006
 SHAPE_CLEAR_SHARE = 0.6
 SHAPE_CLEAR_FIT_M = 0.002
 # `_reseat_outliers`: a segment with this many labels or more whose labels misfit its layout by this times
