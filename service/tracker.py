@@ -1232,11 +1232,8 @@ def _mirror_by_joint(model: SubjectModel, st: TrackState, k: int, lab: np.ndarra
     cands = np.flatnonzero(symmetric[1:]) + 1
     if len(cands) == 0 or len(lab) < 3 or st.skel_pred_m is None:
         return None
-    joint = _joints_m(model, st)[k]
     rows = np.concatenate([[0], cands])
-    A = np.concatenate([model.layout_offsets_m[slot[maps[rows]]], np.zeros((len(rows), 1, 3))], axis=1)
-    B = np.broadcast_to(np.vstack([cur[lab], joint[None]]), A.shape)
-    fit = _kabsch_rms(A, B, np.ones(A.shape[:2], bool))
+    fit = _joint_fits(model, st, k, lab, slot, maps, rows, cur)
     order = np.argsort(fit[1:])
     best = fit[1 + order[0]]
     if fit[0] < JOINT_MIN_MISFIT_M or best > JOINT_GAIN * fit[0]:
@@ -1244,6 +1241,18 @@ def _mirror_by_joint(model: SubjectModel, st: TrackState, k: int, lab: np.ndarra
     if len(order) > 1 and fit[1 + order[1]] < 1.5 * best:
         return None
     return int(rows[1 + order[0]])
+
+
+def _joint_fits(model: SubjectModel, st: TrackState, k: int, lab: np.ndarray, slot: np.ndarray, maps: np.ndarray,
+                rows: np.ndarray, cur: np.ndarray) -> np.ndarray:
+    """(len(rows),) [m] RMS of segment k's labeled points `lab` and its joint, where the latest fit puts
+    it, registered onto the layout under each relabelling maps[rows]; all infinite with no fit to ask."""
+    if st.skel_pred_m is None:
+        return np.full(len(rows), np.inf)
+    joint = _joints_m(model, st)[k]
+    A = np.concatenate([model.layout_offsets_m[slot[maps[rows]]], np.zeros((len(rows), 1, 3))], axis=1)
+    B = np.broadcast_to(np.vstack([cur[lab], joint[None]]), A.shape)
+    return _kabsch_rms(A, B, np.ones(A.shape[:2], bool))
 
 
 @functools.lru_cache(maxsize=None)
@@ -1384,12 +1393,31 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
         if mirror is not None:
             proposals[r] = slot[maps[mirror]]
             continue
-        rms = np.where(unseen | blocked, np.inf, rms)
-        rms[0] = np.inf
+        fitting = np.where(unseen, np.inf, rms)  # blocked or not
+        fitting[0] = np.inf
+        rms = np.where(blocked, np.inf, fitting)
         best = int(np.argmin(rms))
         # (one taken on clear evidence must also stand out: two that fit alike leave it open which)
         rivals = np.count_nonzero(rms < 2.0 * rms[best] + 0.001)
         unique = rivals <= 1 or symmetric_rms[best] >= SHAPE_DISTINCT_M
+        # Two labels match one distance, which their swap keeps: every relabelling of them ties with its
+        # swap, and a block on one of the two for a label's jump from where a marker was last seen (stale
+        # after a long occlusion) used to pick the other (a tennis player's toe label went to the ankle's
+        # point and the ankle's to the toe's, for 4 s). Such a tie is told apart by the segment's joint, or
+        # left alone. (A block for handing over the point of a label tracked all along stands: that label is
+        # not suspect.) (Dev suite, 18 realizations: L3 97.932 -> 97.959 %, L2 unchanged; for segments of
+        # any number of labels L3 gained less, 97.946 %, and the head's near-square layout kept a swap
+        # twice as long on 85_12.)
+        tied = np.flatnonzero(fitting < 2.0 * rms[best] + 0.001)
+        tied = tied[~((maps[tied] >= len(lab)) & (st.provisional[lab] <= 0)).any(1)]
+        if len(lab) == 2 and len(tied) > 1:
+            joint_fit = _joint_fits(model, st, ks[r], lab, slot, maps, tied, cur)
+            order = np.argsort(joint_fit)
+            if joint_fit[order[0]] <= COMPLETE_WRONG_PAIR_JOINT_M and joint_fit[order[1]] >= 2.0 * joint_fit[order[0]] + SHAPE_CLEAR_MIN_M:
+                best = int(tied[order[0]])
+                unique = not blocked[best]
+            elif blocked[tied].any():
+                unique = False
         if unique and rms[best] < min(SHAPE_GAIN * rms0[r], SHAPE_GOOD_RMS_M) and symmetric_rms[best] > 2.0 * rms[best]:
             proposals[r] = slot[maps[best]]
         else:

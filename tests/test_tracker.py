@@ -666,6 +666,31 @@ def test_a_label_on_a_hidden_neighbours_point_is_put_back_by_the_free_point_thou
     assert set(np.flatnonzero(changed)) == {heel, toe}
 
 
+def test_two_labels_are_not_swapped_on_the_word_of_a_stale_position():
+    """A foot's fifth metatarsal label on its point and the heel label re-acquired on the toe's point (heel
+    and toe hidden a while; the toe's place last seen 25 cm from its point now). Two labels match one
+    distance: handing the heel label's point to the toe fits the layout, and so does its swap, the
+    metatarsal's point to the toe and the metatarsal label onto the toe's point. The stale place blocks the
+    first, which used to let the second through (a tennis player's toe and ankle labels so swapped, 4 s).
+    With no fit to say where the ankle is, neither is taken."""
+    perf, model, R, points, _ = _right_foot([-0.07, 0.0, -0.04], [0.14, 0.02, -0.045], [0.09, -0.04, -0.045])
+    m = len(perf.marker_names)
+    heel, toe, mt5 = (perf.marker_names.index(n) for n in ("RHEE", "RTOE", "RMT5"))
+    st = tracker.new_state(model, points, t_ns(0))
+    st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
+    away = points[mt5] - points[toe]
+    st.pos_m[toe] = points[mt5] + 0.18 * away / np.linalg.norm(away)  # where the toe was last seen
+    assert np.linalg.norm(st.pos_m[toe] - points[toe]) > tracker.SHAPE_MAX_HANDOVER_M
+    st.provisional[[heel, mt5]] = tracker.PROBATION_FRAMES  # both just re-acquired
+    idx = np.arange(m)
+    idx[heel], idx[toe] = toe, -1
+    wrong = idx.copy()
+    for _ in range(tracker.SHAPE_CONFIRM + 1):
+        cur = tracker._gather(points, idx)
+        assert not tracker._relabel_by_shape(model, st, points, idx, cur).any()
+    assert (idx == wrong).all()
+
+
 def test_a_wrist_label_on_the_waist_markers_point_is_reseated_where_its_forearm_puts_it():
     """A hand resting on the hip: the wrist marker's label on the waist marker's point and the waist's on
     the wrist's, 4 cm apart. No permutation within either segment undoes it, but the forearm's other labels
