@@ -1057,9 +1057,9 @@ def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndar
     but otherwise only guards against a far-fetched triangle (COMPLETE_WRONG_PAIR_JOINT_M). A skeleton
     fitting at 20-30 mm put a tennis player's ankle joint 5-9 cm from a heel label on the toe's point,
     which stayed there 2.3 s; once the floor let a wrong labeling, its joint 12 cm off, fit a forearm's
-    layout too, wrist labels on the finger's and forearm's points (joint 44 mm off) stayed there 5 s. As in `_relabel_by_shape`, the same relabelling must win SHAPE_CONFIRM
-    checks running on a trusted layout, and the long-run partner distances must not object; the free
-    point's label is on probation."""
+    layout too, wrist labels on the finger's and forearm's points (joint 44 mm off) stayed there 5 s. As
+    in `_relabel_by_shape`, the same relabelling must win SHAPE_CONFIRM checks running on a trusted
+    layout, and the long-run partner distances must not object; the free point's label is on probation."""
     slots = _layout_slots(model, st)
     if slots is None:
         return np.zeros(len(point_index), bool)
