@@ -1408,9 +1408,9 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
         # not suspect.) (Dev suite, 18 realizations: L3 97.932 -> 97.959 %, L2 unchanged; for segments of
         # any number of labels L3 gained less, 97.946 %, and the head's near-square layout kept a swap
         # twice as long on 85_12.)
-        tied = np.flatnonzero(fitting < 2.0 * rms[best] + 0.001)
+        tied = np.flatnonzero(fitting < 2.0 * rms[best] + 0.001) if len(lab) == 2 else np.zeros(0, int)
         tied = tied[~((maps[tied] >= len(lab)) & (st.provisional[lab] <= 0)).any(1)]
-        if len(lab) == 2 and len(tied) > 1:
+        if len(tied) > 1:
             joint_fit = _joint_fits(model, st, ks[r], lab, slot, maps, tied, cur)
             order = np.argsort(joint_fit)
             if joint_fit[order[0]] <= COMPLETE_WRONG_PAIR_JOINT_M and joint_fit[order[1]] >= 2.0 * joint_fit[order[0]] + SHAPE_CLEAR_MIN_M:
