@@ -666,13 +666,15 @@ def test_a_label_on_a_hidden_neighbours_point_is_put_back_by_the_free_point_thou
     assert set(np.flatnonzero(changed)) == {heel, toe}
 
 
-def test_two_labels_are_not_swapped_on_the_word_of_a_stale_position():
+def test_two_labels_tied_with_their_swap_take_the_least_change_unless_a_stale_position_blocks_it():
     """A foot's fifth metatarsal label on its point and the heel label re-acquired on the toe's point (heel
     and toe hidden a while; the toe's place last seen 25 cm from its point now). Two labels match one
     distance: handing the heel label's point to the toe fits the layout, and so does its swap, the
     metatarsal's point to the toe and the metatarsal label onto the toe's point. The stale place blocks the
     first, which used to let the second through (a tennis player's toe and ankle labels so swapped, 4 s).
-    With no fit to say where the ankle is, neither is taken."""
+    With no fit to say where the ankle is, neither is taken. Where the toe was last seen by its point, so
+    that neither is blocked, the least change is taken: the heel label's point handed to the toe, the
+    metatarsal label left on its point."""
     perf, model, R, points, _ = _right_foot([-0.07, 0.0, -0.04], [0.14, 0.02, -0.045], [0.09, -0.04, -0.045])
     m = len(perf.marker_names)
     heel, toe, mt5 = (perf.marker_names.index(n) for n in ("RHEE", "RTOE", "RMT5"))
@@ -689,6 +691,13 @@ def test_two_labels_are_not_swapped_on_the_word_of_a_stale_position():
         cur = tracker._gather(points, idx)
         assert not tracker._relabel_by_shape(model, st, points, idx, cur).any()
     assert (idx == wrong).all()
+    st.pos_m[toe] = points[toe] + [0.0, 0.0, 0.02]
+    for _ in range(tracker.SHAPE_CONFIRM):
+        cur = tracker._gather(points, idx)
+        changed = tracker._relabel_by_shape(model, st, points, idx, cur)
+    want = np.arange(m)
+    want[heel] = -1
+    assert (idx == want).all() and set(np.flatnonzero(changed)) == {heel, toe}
 
 
 def test_a_wrist_label_on_the_waist_markers_point_is_reseated_where_its_forearm_puts_it():
