@@ -709,16 +709,17 @@ class Engine:
         if s.model.has_skeleton:
             Rs, ps = calibration.world_transforms(old.t_root_m, old.R_parent_segment, s.model.joint_offsets_m)
         for n, track in enumerate(tracks):
-            name = f"M{len(markers):02d}"
-            while name in markers:
-                name = name + "b"
             f, p_new = track[-1][0], track[-1][1]
             seg.append(0)
             off.append(np.zeros(3))
             if named is not None:
                 name, seg[-1] = named[n]
-            elif s.model.has_skeleton:  # ride on the segment of the nearest marker
-                seg[-1] = s.model.marker_segment[int(np.argmin(np.linalg.norm(old.pos_m - p_new, axis=1)))]
+            else:
+                name = f"M{len(markers):02d}"
+                while name in markers:
+                    name = name + "b"
+                if s.model.has_skeleton:  # ride on the segment of the nearest marker
+                    seg[-1] = s.model.marker_segment[int(np.argmin(np.linalg.norm(old.pos_m - p_new, axis=1)))]
             if s.model.has_skeleton:  # at its current offset
                 off[-1] = Rs[seg[-1]].T @ (p_new - ps[seg[-1]])
             markers.append(name)
