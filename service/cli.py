@@ -122,6 +122,11 @@ def _label(args) -> int:
     enable_compilation_cache(config.cache_dir)
     points_m, labels = label_recording(recording, config, seed_frames=args.seed_frames,
                                        progress=not args.no_progress)
+    if not labels:  # a C3D needs a point to hold; an empty file would pass for a result
+        why = (f"its first {args.seed_frames} frames name no marker" if args.seed_frames else
+               "no frame shows a person standing in a T-pose, and no seed labels were given (--seed-frames K)")
+        print(f"mocap-service: no subject found in {args.input}: {why}; nothing written", file=sys.stderr)
+        return 1
     try:
         write_c3d(args.output, points_m, labels, recording.rate_hz)
     except C3DError as e:

@@ -109,6 +109,21 @@ def test_label_bad_input_file(tmp_path):
     assert not (tmp_path / "out.c3d").exists()
 
 
+def test_label_finds_no_subject(tmp_path, cache_dir):
+    """Points that are no person in a T-pose, and no seed labels: one sentence, status 1, no file (an
+    empty C3D would pass for a result)."""
+    from recordings.c3d import write_c3d
+
+    rng = np.random.default_rng(0)
+    path, out = tmp_path / "scatter.c3d", tmp_path / "out.c3d"
+    write_c3d(path, rng.uniform(0.0, 3.0, (40, 30, 3)), [f"*{i}" for i in range(30)], 100.0)
+    assert_one_line_error(cli("label", path, "-o", out, "--cache-dir", cache_dir, "--no-progress"),
+                          "no subject found", "T-pose", status=1)
+    assert_one_line_error(cli("label", path, "-o", out, "--seed-frames", 10, "--cache-dir", cache_dir,
+                              "--no-progress"), "no subject found", "name no marker", status=1)
+    assert not out.exists()
+
+
 def test_label_bad_output_directory(tmp_path, small_c3d):
     path, _ = small_c3d
     assert_one_line_error(cli("label", path, "-o", tmp_path / "no" / "such" / "dir.c3d"), "does not exist")
