@@ -338,7 +338,9 @@ def _by_rigidity(
     to them make the pelvis look unsteady to its own markers (a tennis player's ASIS/PSIS went to the thigh)."""
     sd = _distance_sd(history_m) if sd is None else sd
     m, n_seg = cost.shape
-    best_cost = np.nanmin(np.where(np.isfinite(cost), cost, np.nan), axis=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a marker unseen in the frame has no finite cost
+        best_cost = np.nanmin(np.where(np.isfinite(cost), cost, np.nan), axis=1)
     plausible = (cost - best_cost[:, None] < margin) | ~np.isfinite(cost)
     candidate = plausible & (np.isfinite(cost) | np.array([_is_arm(k) for k in range(n_seg)])[None, :])
 
