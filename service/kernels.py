@@ -84,6 +84,33 @@ def track_labels(points, rows, cols, contested, pred, speed, dt, m, check_m):
 
 
 @_jit
+def carried_labels(point_index, cur, pred, gates, speed, dt, slide_share):
+    """The tracked labels (point_index, cur from `track_labels`) carried on with no choice: no other
+    labeled marker's point inside the marker's gate around its prediction, and a step (speed * dt) no longer
+    than slide_share of the way to the nearest other labeled point; -1 elsewhere. Replaces the numpy
+    formulation `rival = norm(cur[None] - pred[:, None]) < gates[:, None]` (diagonal off), `slid = speed * dt
+    > slide_share * min over others of norm(cur[None] - cur[:, None])`, `where(rival.any(1) | slid, -1,
+    point_index)`. (tracker.step, 1.: `TrackState.settled`)"""
+    m = point_index.shape[0]
+    out = point_index.copy()
+    for i in range(m):
+        if point_index[i] < 0:
+            continue
+        g2 = gates[i] * gates[i]
+        near2 = math.inf
+        for j in range(m):
+            if j == i or point_index[j] < 0:
+                continue
+            if _dist2(cur, j, pred, i) < g2:
+                out[i] = -1
+                break
+            near2 = min(near2, _dist2(cur, j, cur, i))
+        if out[i] >= 0 and speed[i] * dt > slide_share * math.sqrt(near2):
+            out[i] = -1
+    return out
+
+
+@_jit
 def rigid_predict(partners, snap, dist_var, pos, labeled, which):
     """For each marker i where `which[i]`, carry its partners' positions when it was last seen
     (`snap[i, j]`) onto their positions now (`pos`, labeled ones) by the weighted best rigid motion
@@ -622,7 +649,8 @@ def warm_up() -> float:
     kabsch_rms(snap, snap, np.ones((m, k + 1), bool))
     gated_pairs(pos, np.ones(m), pos, labeled)
     pred, speed, _ = track_predictions(pos, pos, pos, labeled, 0.01, True, 0.03)
-    track_labels(pos, rows, rows, labeled, pred, speed, 0.01, m, 0.006)
+    idx, _, _ = track_labels(pos, rows, rows, labeled, pred, speed, 0.01, m, 0.006)
+    carried_labels(idx, pos, pred, speed, speed, 0.01, 0.5)
     hidden = np.zeros(m, np.int64)
     commit_motion(pos, pos, pos, labeled, hidden, labeled, pos, labeled, pos, 0.01, 15.0, 500.0)
     snapshot(snap, pos, labeled)

@@ -185,6 +185,20 @@ SHAPE_CONFIRM = 2  # ... when the same relabelling wins this many checks running
 #: would permute them again (a foot's toe and fifth metatarsal, so swapped back, stayed swapped for 12 s:
 #: 85_12 at L3). So for this many frames it may not swap them.
 SHAPE_HOLD_FRAMES = 8
+#: A label carried on by tracking alone since its segment's layout last confirmed it (every layout marker of
+#: the segment labeled, SETTLED_MIN_LABELS or more, fitting) is settled: no other marker's point was in its
+#: gate since, nor did any step but tracking move it, so nothing could have permuted it, and the layout
+#: check leaves it where it is. A forearm twisting under pronation moves its wrist markers against its
+#: proximal marker by a centimetre: the true labels misfit the layout by 10 mm where their swap fitted it
+#: by 3, and the check swapped two wrist labels tracked apart at 0.1 m/s for 5 s (135_02 at L3, four
+#: realizations in 18). (Dev suite, 18 realizations: L3 97.977 -> 98.025 %, L2 99.219 -> 99.225 %, no run
+#: lower; settling on any fit of its labels instead held permutations the fit could not see: a wrist label
+#: re-acquired on its neighbour's point passes a three-marker forearm's check, 97.967 %. Counting a ghost
+#: in the gate as an event too left fewer labels settled at L3: 97.994 %.) A tracked step longer than
+#: SLIDE_SHARE of the way to the nearest other label is an event too (without it, 98.021 %: a serving arm's
+#: labels slid one marker down the chain with no rival point in any gate, and a two-player run lost 0.6).
+SETTLED_MIN_LABELS = 3
+SLIDE_SHARE = 0.5
 #: (`_mirror_by_joint`) a relabelling the layout cannot tell from the identity (three markers and their mirror
 #: image) is taken when, with the segment's joint as a fourth point, it fits under JOINT_GAIN times the
 #: identity, which misfits by JOINT_MIN_MISFIT_M or more. (Dev suite: at 0.5, L2 99.215 -> 99.193 %, HDM05 lost up
@@ -286,6 +300,7 @@ class TrackState:
     acc_dt_s: float = 0.0  # the frame interval acc_m_s2 was measured over
     hidden_frames: np.ndarray | None = None  # (M,) int: frames since the marker was last labeled
     layout_hold: np.ndarray | None = None  # (M,) int: frames left in which the skeleton may not swap labels the layout checks moved
+    settled: np.ndarray | None = None  # (M,) bool: the label is beyond the layout check's doubt (SETTLED_MIN_LABELS)
     # the layout check (`_relabel_by_shape`): per segment, the relabelling asked for on the last checks
     # and on how many checks running; per set of labeled markers (bytes), the RMS of each of its
     # relabellings of the layout onto itself; per segment, the share of checks on which the labels or a
@@ -343,6 +358,7 @@ def new_state(model: SubjectModel, positions_m: np.ndarray, t_ns: int, history_m
         vel_measured=np.zeros(m, bool),
         hidden_frames=np.zeros(m, int),
         layout_hold=np.zeros(m, int),
+        settled=np.zeros(m, bool),
         frames=phase,
     )
     if history_m is not None:
@@ -1335,6 +1351,9 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     tight = typical <= SHAPE_CLEAR_LAYOUT_M
     tol = np.where(can_clear, np.minimum(SHAPE_MIN_RMS_M, np.maximum(SHAPE_FIT_FLOOR_M, SHAPE_FIT_FACTOR * typical)), SHAPE_MIN_RMS_M)
     fits = rms0 <= tol
+    if not given and st.settled is not None:  # (given labels: `observe` settles them all)
+        whole = np.bincount(seg[slots], minlength=int(seg.max()) + 1)[ks] == n_lab
+        st.settled |= np.isin(seg, ks[fits & whole & (n_lab >= SETTLED_MIN_LABELS)]) & labeled & slots
     if given:
         _count_layout_fits(st, ks, fits)
         return changed
@@ -1449,6 +1468,8 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
         proposed[lab] = -1
         proposed[new_labels] = point_index[lab]
         moved = slot_of[r][proposed[slot_of[r]] != point_index[slot_of[r]]]
+        if st.settled is not None and st.settled[moved].any():
+            continue
         # the long-run partner distances must not object: they have taken a long-standing permutation in
         # (the target here) but refuse a fresh one (a layout near-symmetric under it, a skin-moved segment)
         z_now = distance_misfit(st, cur, labeled, moved)[moved]
@@ -1512,6 +1533,10 @@ def step(
     point_index, cur, suspicious = kernels.track_labels(points, rows, cols, contested, pred_track, speed, dt, m,
                                                         CHECK_RESIDUAL_M)
     labeled = point_index >= 0
+    # labels tracking carried on with no other marker's point in their gate, in a step short of half the
+    # way to the nearest other label (a serving arm's labels slid one marker down the chain, each taking
+    # the next one's point, none with a rival in its gate) (SETTLED_MIN_LABELS)
+    carried = kernels.carried_labels(point_index, cur, pred_track, gates, speed, dt, SLIDE_SHARE)
 
     # 2. Predict every marker from its rigid partners; a tracked label its partners disagree with (a swap
     #    of two close markers, a ghost caught while the marker hid) is withdrawn and re-assigned below.
@@ -1745,6 +1770,9 @@ def step(
         #    by subjects stepped after this one (`free` is the engine's, updated in place) are not free.
         idx, now = point_index.copy(), cur.copy()
         relabeled = np.zeros(m, bool)
+        if st.settled is None:
+            st.settled = np.zeros(m, bool)
+        st.settled &= (idx >= 0) & (idx == carried)  # a label any other step moved, or none: unsettled
         if model.has_skeleton and st.frames % SHAPE_EVERY_FRAMES == 0:
             relabeled = _relabel_by_shape(model, st, points, idx, now)
             relabeled |= _complete_by_free_point(model, st, points, ~taken & free, idx, now)
@@ -1785,6 +1813,7 @@ def observe(
     collect(model, st)
     dt = min(max((t_ns - st.last_t_ns) * 1e-9, 1e-4), 0.5)
     labeled = np.isfinite(cur[:, 0])
+    st.settled = labeled.copy()
     missing = ~labeled & st.ever_seen
     rpred, _, _ = rigid_predictions(st, cur, labeled, missing)
     skel_pred = _skeleton_now(st, t_ns, dt) if model.has_skeleton else None

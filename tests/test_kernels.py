@@ -146,6 +146,30 @@ def test_track_predictions_and_labels_follow_velocity_acceleration_and_the_gate(
     assert suspicious.tolist() == [False, True, False]
 
 
+def test_carried_labels_match_the_numpy_formulation():
+    """A label is carried when no other labeled point lies in its gate and its step is short of half the
+    way to the nearest other labeled point; as the numpy formulation it replaced."""
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        m = 12
+        cur = rng.uniform(0.0, 0.3, (m, 3))
+        point_index = np.arange(m)
+        point_index[rng.random(m) < 0.3] = -1
+        cur[point_index < 0] = np.nan
+        pred = cur + rng.normal(0.0, 0.01, (m, 3))
+        gates = rng.uniform(0.02, 0.08, m)
+        speed = rng.uniform(0.0, 3.0, m)
+        got = kernels.carried_labels(point_index, cur, pred, gates, speed, 0.01, 0.5)
+        with np.errstate(invalid="ignore"):
+            rival = np.linalg.norm(cur[None] - pred[:, None], axis=2) < gates[:, None]
+            apart = np.linalg.norm(cur[None] - cur[:, None], axis=2)
+        np.fill_diagonal(rival, False)
+        np.fill_diagonal(apart, np.inf)
+        slid = speed * 0.01 > 0.5 * np.min(np.where(np.isnan(apart), np.inf, apart), axis=1)
+        want = np.where(rival.any(1) | slid, -1, point_index)
+        np.testing.assert_array_equal(got, want)
+
+
 def test_commit_motion_measures_velocity_on_two_frames_and_keeps_it_on_reacquisition():
     pos = np.zeros((3, 3))
     vel = np.array([[1.0, 0, 0], [0, 2.0, 0], [0, 0, 3.0]])
@@ -254,7 +278,7 @@ def test_segment_fits_register_every_labelling_and_place_the_joint():
     assert np.isfinite(dist).sum() < len(perms) / 10 and dist[best] < 1e-9
 
 
-KERNELS = ("track_predictions", "track_labels", "rigid_predict", "distance_misfit", "update_distances",
+KERNELS = ("track_predictions", "track_labels", "carried_labels", "rigid_predict", "distance_misfit", "update_distances",
            "kabsch_rms", "gated_pairs", "commit_motion", "snapshot", "world_transforms", "repeats",
            "relabel_candidates", "segment_fits", "rigid_motion")
 

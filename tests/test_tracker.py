@@ -507,6 +507,7 @@ def test_labels_permuted_within_a_segment_are_put_back_by_its_layout(segment, fi
     assert not check(idx).any() and (idx == right).all()
     unmeasured = dataclasses.replace(model, layout_rms_m=None)
     idx = wrong.copy()
+    st.settled[fore[:3]] = False  # as the fast pass that permuted them left them (a choice in tracking)
     for _ in range(tracker.SHAPE_CONFIRM + 1):
         assert not check(idx, unmeasured).any()
     assert (idx == wrong).all()
@@ -515,6 +516,60 @@ def test_labels_permuted_within_a_segment_are_put_back_by_its_layout(segment, fi
     changed = check(idx)
     assert (idx == right).all()
     assert set(np.flatnonzero(changed)) == set(fore[:3])
+
+
+def test_labels_tracked_since_their_layout_confirmed_them_are_not_permuted_by_it():
+    """A forearm's labels confirmed by its layout (every layout marker labeled and fitting) and tracked
+    since are settled: when the layout later prefers a permutation of them (a forearm twisting under
+    pronation moves its wrist markers against its proximal one), the check leaves them be. Labels
+    re-acquired meanwhile are not settled, and the permutation is taken."""
+    from protocol.skeleton import SEGMENTS
+
+    perf = perform(3, duration_s=0.1)
+    m = len(perf.marker_names)
+    fore = np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
+    assert len(fore) >= 4
+    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
+                                 perf.joint_offsets_m, True, layout_offsets_m=perf.marker_offsets_m,
+                                 layout_rms_m=np.full(m, 0.002))
+    points = perf.recording.points_m[0]
+    st = tracker.new_state(model, points, t_ns(0))
+    st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
+    assert not st.settled.any()
+    right = np.arange(m)
+    idx = right.copy()
+    assert not tracker._relabel_by_shape(model, st, points, idx, tracker._gather(points, idx)).any()
+    assert st.settled[fore].all()  # confirmed: the whole forearm labeled, fitting its layout
+    # the layout now says three of the forearm's labels sit cycled on each other's points
+    three = fore[1:4]
+    cycled = perf.marker_offsets_m.copy()
+    cycled[three] = perf.marker_offsets_m[three[[1, 2, 0]]]
+    twisted = dataclasses.replace(model, layout_offsets_m=cycled)
+    for _ in range(tracker.SHAPE_CONFIRM + 1):
+        assert not tracker._relabel_by_shape(twisted, st, points, idx, tracker._gather(points, idx)).any()
+    assert (idx == right).all()
+    st.settled[three] = False  # re-acquired since (a forearm back from an occlusion)
+    changed = np.zeros(m, bool)
+    for _ in range(tracker.SHAPE_CONFIRM):
+        changed |= tracker._relabel_by_shape(twisted, st, points, idx, tracker._gather(points, idx))
+    assert set(np.flatnonzero(changed)) == set(three)
+    assert (idx[three] == three[[1, 2, 0]]).all() or (idx[three] == three[[2, 0, 1]]).all()
+
+
+def test_a_label_with_another_markers_point_in_its_gate_is_unsettled():
+    """Tracking unsettles the labels it carried where a choice was possible: two markers whose points lie
+    2 cm apart, inside each other's gates; the others stay settled (no skeleton: no layout check)."""
+    rng = np.random.default_rng(0)
+    cloud = rng.uniform(-0.5, 0.5, (8, 3)) * [1.0, 1.0, 0.1] + [0.0, 0.0, 1.0]
+    cloud[:, 0] += 0.3 * np.arange(8)  # spread out: no two points within 20 cm ...
+    cloud[1] = cloud[0] + [0.02, 0.0, 0.0]  # ... but these two
+    P = np.repeat(cloud[None], 241, axis=0)
+    model, st = seeded_state(P, 240)
+    assert st.settled.all()  # given labels
+    st, res = tracker.step(model, st, P[240], np.ones(8, bool), t_ns(240), CONFIG)
+    assert (res.point_index == np.arange(8)).all()
+    assert not st.settled[0] and not st.settled[1]
+    assert st.settled[2:].all()
 
 
 def test_layouts_are_trusted_from_the_frames_they_were_calibrated_from():
