@@ -477,25 +477,30 @@ def _checked(layout_check, points: np.ndarray, point_index: np.ndarray) -> np.nd
     return changed
 
 
+def _with_layouts(segment: str):
+    """A synthetic performer's first frame, its model with layouts measured (2 mm residuals), a state whose
+    layouts have been fitting, and the markers of `segment`: (perf, model, points, st, markers)."""
+    from protocol.skeleton import SEGMENTS
+
+    perf = perform(3, duration_s=0.1)
+    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
+                                 perf.joint_offsets_m, True, layout_offsets_m=perf.marker_offsets_m,
+                                 layout_rms_m=np.full(len(perf.marker_names), 0.002))
+    points = perf.recording.points_m[0]
+    st = tracker.new_state(model, points, t_ns(0))
+    st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
+    return perf, model, points, st, np.flatnonzero(perf.marker_segment == SEGMENTS.index(segment))
+
+
 @pytest.mark.parametrize("segment, first", [("r_forearm", 1), ("r_foot", 0)])
 def test_labels_permuted_within_a_segment_are_put_back_by_its_layout(segment, first):
     """Three labels of a segment cycled among their points (a wrist triad after a fast pass; a foot's heel,
     toe and fifth metatarsal, the heel's label 20 cm from its point) are put back in the order the
     segment's calibrated layout says, once SHAPE_CONFIRM checks agree; correct labels are left alone, and
     so is a model whose layout was never measured."""
-    from protocol.skeleton import SEGMENTS
-
-    perf = perform(3, duration_s=0.1)
-    m = len(perf.marker_names)
-    fore = np.flatnonzero(perf.marker_segment == SEGMENTS.index(segment))[first:]
-    assert len(fore) >= 3
-    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
-                                 perf.joint_offsets_m, True, layout_offsets_m=perf.marker_offsets_m,
-                                 layout_rms_m=np.full(m, 0.002))
-    points = perf.recording.points_m[0]
-    assert np.isfinite(points).all()
-    st = tracker.new_state(model, points, t_ns(0))
-    st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
+    perf, model, points, st, fore = _with_layouts(segment)
+    m, fore = len(perf.marker_names), fore[first:]
+    assert len(fore) >= 3 and np.isfinite(points).all()
     right = np.arange(m)
     wrong = right.copy()
     wrong[fore[:3]] = right[fore[[1, 2, 0]]]  # the wrist pair and the finger marker 8-11 cm apart; the foot's up to 20 cm
@@ -523,18 +528,9 @@ def test_labels_tracked_since_their_layout_confirmed_them_are_not_permuted_by_it
     since are settled: when the layout later prefers a permutation of them (a forearm twisting under
     pronation moves its wrist markers against its proximal one), the check leaves them be. Labels
     re-acquired meanwhile are not settled, and the permutation is taken."""
-    from protocol.skeleton import SEGMENTS
-
-    perf = perform(3, duration_s=0.1)
+    perf, model, points, st, fore = _with_layouts("r_forearm")
     m = len(perf.marker_names)
-    fore = np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
     assert len(fore) >= 4
-    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
-                                 perf.joint_offsets_m, True, layout_offsets_m=perf.marker_offsets_m,
-                                 layout_rms_m=np.full(m, 0.002))
-    points = perf.recording.points_m[0]
-    st = tracker.new_state(model, points, t_ns(0))
-    st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
     assert not st.settled.any()
     right = np.arange(m)
     idx = right.copy()
@@ -812,17 +808,8 @@ def test_a_re_acquired_label_on_a_hidden_neighbours_point_is_handed_to_it():
     hidden; it came back first): the layout says the point is the other's, so it is handed over once
     SHAPE_CONFIRM checks agree, and the re-acquired marker is unlabeled again. Only a label on probation
     (just re-acquired) is handed on: one tracked all along is left."""
-    from protocol.skeleton import SEGMENTS
-
-    perf = perform(3, duration_s=0.1)
+    perf, model, points, st, fore = _with_layouts("r_forearm")
     m = len(perf.marker_names)
-    fore = np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
-    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
-                                 perf.joint_offsets_m, True, layout_offsets_m=perf.marker_offsets_m,
-                                 layout_rms_m=np.full(m, 0.002))
-    points = perf.recording.points_m[0]
-    st = tracker.new_state(model, points, t_ns(0))
-    st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
     a, b = fore[1], fore[0]  # a wrist marker on the point of the forearm marker 15 cm up
     wrong = np.arange(m)
     wrong[a], wrong[b] = b, -1  # a sits on b's point; b unlabeled
@@ -848,18 +835,9 @@ def test_with_one_other_label_in_view_a_re_acquired_label_is_handed_by_their_dis
     finger marker's point. Two labeled points still tell their distance (22 cm, where the layout has 15 cm
     for these labels and 22 cm to the finger), so the point is handed to the finger marker. Segments with
     two labels were never checked: a toe label on a tennis player's ankle point stayed 270 frames."""
-    from protocol.skeleton import SEGMENTS
-
-    perf = perform(3, duration_s=0.1)
+    perf, model, points, st, fore = _with_layouts("r_forearm")
     m = len(perf.marker_names)
-    fore = np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
     assert [perf.marker_names[i] for i in fore] == ["RFRM", "RWRA", "RWRB", "RFIN"]
-    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
-                                 perf.joint_offsets_m, True, layout_offsets_m=perf.marker_offsets_m,
-                                 layout_rms_m=np.full(m, 0.002))
-    points = perf.recording.points_m[0]
-    st = tracker.new_state(model, points, t_ns(0))
-    st.shape_fit[:], st.shape_checks[:] = 1.0, 10
     a, b = fore[1], fore[3]  # RWRA on RFIN's point; RWRB and RFIN unlabeled
     idx = np.arange(m)
     idx[a], idx[b], idx[fore[2]] = b, -1, -1
