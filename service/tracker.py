@@ -1351,7 +1351,7 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     tight = typical <= SHAPE_CLEAR_LAYOUT_M
     tol = np.where(can_clear, np.minimum(SHAPE_MIN_RMS_M, np.maximum(SHAPE_FIT_FLOOR_M, SHAPE_FIT_FACTOR * typical)), SHAPE_MIN_RMS_M)
     fits = rms0 <= tol
-    if not given and st.settled is not None:  # (given labels: `observe` settles them all)
+    if not given:  # (given labels: `observe` settles them all)
         whole = np.bincount(seg[slots], minlength=int(seg.max()) + 1)[ks] == n_lab
         st.settled |= np.isin(seg, ks[fits & whole & (n_lab >= SETTLED_MIN_LABELS)]) & labeled & slots
     if given:
@@ -1468,7 +1468,7 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
         proposed[lab] = -1
         proposed[new_labels] = point_index[lab]
         moved = slot_of[r][proposed[slot_of[r]] != point_index[slot_of[r]]]
-        if st.settled is not None and st.settled[moved].any():
+        if st.settled[moved].any():
             continue
         # the long-run partner distances must not object: they have taken a long-standing permutation in
         # (the target here) but refuse a fresh one (a layout near-symmetric under it, a skin-moved segment)
@@ -1770,8 +1770,6 @@ def step(
         #    by subjects stepped after this one (`free` is the engine's, updated in place) are not free.
         idx, now = point_index.copy(), cur.copy()
         relabeled = np.zeros(m, bool)
-        if st.settled is None:
-            st.settled = np.zeros(m, bool)
         st.settled &= (idx >= 0) & (idx == carried)  # a label any other step moved, or none: unsettled
         if model.has_skeleton and st.frames % SHAPE_EVERY_FRAMES == 0:
             relabeled = _relabel_by_shape(model, st, points, idx, now)
