@@ -717,6 +717,43 @@ def test_a_label_on_a_hidden_neighbours_point_is_put_back_by_the_free_point_thou
     assert set(np.flatnonzero(changed)) == {heel, toe}
 
 
+@pytest.mark.parametrize("fit_off_m", [0.0, 0.08])
+def test_a_pair_misfitting_its_layout_by_skin_motion_is_kept_where_the_joint_fits_it(fit_off_m):
+    """A forearm's RWRA and RFIN labels on their own points, the finger's point 16 mm farther from the wrist
+    than in the layout (skin and joint motion: a pair misfits by 10-15 mm under pronation), RFRM and RWRB
+    unlabeled, RWRB's point free, and a ghost where the pair, read as RWRB and RFIN, puts RWRA. That
+    relabelling fits the layout and the misfit pair does not, but the elbow, where the fit puts it, fits
+    the pair as labeled within COMPLETE_JOINT_RMS_M and clearly better: left alone (on 135_02 at L3 the
+    relabelling swapped the right wrist labels for 3 s). With the fit's elbow 8 cm off, the joint cannot
+    vouch for the pair, and the relabelling is taken as before (a wrong pair's misfit)."""
+    from protocol.skeleton import SEGMENTS
+
+    perf, model, points, st, _ = _with_layouts("r_forearm")
+    m, layout = len(perf.marker_names), model.layout_offsets_m
+    frm, wra, wrb, fin = (perf.marker_names.index(n) for n in ("RFRM", "RWRA", "RWRB", "RFIN"))
+    assert set(np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))) == {frm, wra, wrb, fin}
+    points = points.copy()
+    away = points[fin] - points[wra]
+    points[fin] += 0.016 * away / np.linalg.norm(away)
+    R, t = tracker.rigid_motion(layout[[wrb, fin]], points[[wra, fin]])
+    points = np.vstack([points, R @ layout[wra] + t])  # the ghost
+    st.t_root_m = perf.root_position_m[0] + [0.0, 0.0, fit_off_m]
+    st.R_parent_segment = Rotation.from_quat(perf.rotations_xyzw[0]).as_matrix()
+    idx = np.arange(m)
+    idx[[frm, wrb]] = -1
+    before = idx.copy()
+    changed = np.zeros(m, bool)
+    for _ in range(tracker.SHAPE_CONFIRM + 1):
+        cand = np.ones(len(points), bool)
+        cand[idx[idx >= 0]] = False
+        cand[frm] = False  # hidden
+        changed |= _checked(lambda i, cur: tracker._complete_by_free_point(model, st, points, cand, i, cur), points, idx)
+    if fit_off_m == 0.0:
+        assert not changed.any() and (idx == before).all()
+    else:
+        assert idx[wrb] == wra and idx[wra] == m  # RWRB on RWRA's point, RWRA on the ghost
+
+
 def test_two_labels_tied_with_their_swap_take_the_least_change_unless_a_stale_position_blocks_it():
     """A foot's fifth metatarsal label on its point and the heel label re-acquired on the toe's point (heel
     and toe hidden a while; the toe's place last seen 25 cm from its point now). Two labels match one
