@@ -60,7 +60,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from protocol.skeleton import N_SEGMENTS, PARENTS
+from protocol.skeleton import N_SEGMENTS, PARENTS, SEGMENTS
 from service import kernels
 from service.config import EngineConfig
 
@@ -206,6 +206,15 @@ SLIDE_SHARE = 0.5
 #: 97.361 -> 97.371 %.)
 JOINT_GAIN = 0.3
 JOINT_MIN_MISFIT_M = 0.015
+#: Segments that twist along their length: a forearm carries the wrist and hand markers, which pronation
+#: turns about the ulna against its proximal marker, so its layout, rigid in a seed that did not show it,
+#: misfits its true labels by ~10 mm, and the wrist pair swapped fits it to 3 mm (the pair is near-mirror
+#: symmetric about the forearm's axis). On these a relabelling the layout barely tells (taken on clear
+#: evidence) must not fit the joint worse than the labels do (`_relabel_by_shape`). (Dev suite, 18
+#: realizations: L2 99.225 -> 99.239 %, L3 98.035 -> 98.056 %, 11 runs up, one down by 0.09; five 135_02 runs
+#: at L3 had the right wrist labels swapped for 1-2.5 s. On every segment: L3 98.028 %, a head band's
+#: near-square layout, which its joint barely tells, stayed permuted on 85_12, -3.3 points.)
+TWISTING_SEGMENTS = (SEGMENTS.index("l_forearm"), SEGMENTS.index("r_forearm"))
 SHAPE_FIT_ALPHA = SHAPE_EVERY_FRAMES / 200  # the share of checks (over ~200 frames) on which a segment's labels fit its layout, a running mean ...
 SHAPE_TRUSTED_SHARE = 0.3  # ... at least this, over more than SHAPE_MIN_CHECKS checks, for its layout to be trusted
 SHAPE_MIN_CHECKS = 5
@@ -1455,7 +1464,11 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
                     best, unique = int(least[0]), True
                 elif blocked[tied].any():
                     unique = False
-        if unique and rms[best] < min(SHAPE_GAIN * rms0[r], SHAPE_GOOD_RMS_M) and symmetric_rms[best] > 2.0 * rms[best]:
+        take = unique and rms[best] < min(SHAPE_GAIN * rms0[r], SHAPE_GOOD_RMS_M) and symmetric_rms[best] > 2.0 * rms[best]
+        if take and ks[r] in TWISTING_SEGMENTS and symmetric_rms[best] < SHAPE_DISTINCT_M:  # (see TWISTING_SEGMENTS)
+            joint_fit = _joint_fits(model, st, ks[r], lab, slot, maps, np.array([0, best]), cur)
+            take = not joint_fit[1] > joint_fit[0]
+        if take:
             proposals[r] = slot[maps[best]]
         else:
             st.shape_votes.pop(int(ks[r]), None)

@@ -568,6 +568,43 @@ def test_a_label_with_another_markers_point_in_its_gate_is_unsettled():
     assert st.settled[2:].all()
 
 
+@pytest.mark.parametrize("elbow_fits", ["labels", "swap"])
+def test_a_twisted_forearms_wrist_labels_are_swapped_only_where_its_joint_agrees(elbow_fits):
+    """A forearm's wrist markers turned 135 degrees about its axis from the seed's pose (pronation, which
+    a rigid layout does not model): the wrist labels on their own points misfit the layout by 18 mm, and
+    swapped they fit it to 3 mm, as a mirror-symmetric pair does. Where the fit puts the elbow where the
+    labels, registered on the layout, put it, the swap fits the joint worse and the labels are left be (on
+    135_02 at L3 such swaps lasted 1-2.5 s); where it puts the elbow where the swap puts it, the swap is
+    taken (TWISTING_SEGMENTS)."""
+    from service.calibration import world_transforms
+
+    perf, model, points, st, _ = _with_layouts("r_forearm")
+    m, layout, k = len(perf.marker_names), model.layout_offsets_m, perf.marker_segment[perf.marker_names.index("RFRM")]
+    frm, wra, wrb, fin = (perf.marker_names.index(n) for n in ("RFRM", "RWRA", "RWRB", "RFIN"))
+    assert k in tracker.TWISTING_SEGMENTS
+    R = Rotation.from_quat(perf.rotations_xyzw[0]).as_matrix()
+    elbow = world_transforms(perf.root_position_m[0], R, perf.joint_offsets_m)[1][k]
+    points = points.copy()
+    axis = (points[wra] + points[wrb]) / 2 - elbow
+    points[[wra, wrb]] = elbow + Rotation.from_rotvec(np.radians(135) * axis / np.linalg.norm(axis)).apply(points[[wra, wrb]] - elbow)
+    labels, swap = [frm, wra, wrb], [frm, wrb, wra]
+    misfit = tracker._kabsch_rms(layout[[labels, swap]], np.broadcast_to(points[labels], (2, 3, 3)), np.ones((2, 3), bool))
+    assert misfit[0] > 0.015 and misfit[1] < 0.004
+    # the fit's elbow where the labels (or their swap), registered on the layout, put the segment's origin
+    _, origin = tracker.rigid_motion(layout[labels if elbow_fits == "labels" else swap], points[labels])
+    st.t_root_m, st.R_parent_segment = perf.root_position_m[0] + origin - elbow, R
+    st.skel_pred_m = points.copy()  # (a fit to ask)
+    idx = np.arange(m)
+    idx[fin] = -1  # hidden
+    changed = np.zeros(m, bool)
+    for _ in range(tracker.SHAPE_CONFIRM + 1):
+        changed |= _checked(lambda i, cur: tracker._relabel_by_shape(model, st, points, i, cur), points, idx)
+    if elbow_fits == "labels":
+        assert not changed.any() and (idx[[frm, wra, wrb]] == labels).all()
+    else:
+        assert set(np.flatnonzero(changed)) == {wra, wrb} and idx[wra] == wrb and idx[wrb] == wra
+
+
 def test_layouts_are_trusted_from_the_frames_they_were_calibrated_from():
     """A calibration that lands after the seed starts with every segment's layout trusted where the
     labeled history fits it, so a swap right after it can be undone (a tennis serve at 50 Hz swapped the
