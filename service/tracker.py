@@ -1087,8 +1087,9 @@ def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndar
     as labeled, with any free point, fits the joint within COMPLETE_JOINT_RMS_M and by SHAPE_CLEAR_MIN_M
     better than the relabelling, it is kept (a forearm's right wrist labels so swapped onto each other's
     points stayed swapped 3 s, 135_02 at L3; dev suite, 18 realizations: 3 L3 runs up, L3 98.025 ->
-    98.035 %, none down, L2 and the off-suite files unchanged). As in `_relabel_by_shape`, the same relabelling must win SHAPE_CONFIRM checks running on a trusted
-    layout, and the long-run partner distances must not object; the free point's label is on probation."""
+    98.035 %, none down, L2 and the off-suite files unchanged). As in `_relabel_by_shape`, the same
+    relabelling must win SHAPE_CONFIRM checks running on a trusted layout, and the long-run partner
+    distances must not object; the free point's label is on probation."""
     slots = _layout_slots(model, st)
     if slots is None:
         return np.zeros(len(point_index), bool)
