@@ -1468,7 +1468,7 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
         take = unique and rms[best] < min(SHAPE_GAIN * rms0[r], SHAPE_GOOD_RMS_M) and symmetric_rms[best] > 2.0 * rms[best]
         if take and ks[r] in TWISTING_SEGMENTS and symmetric_rms[best] < SHAPE_DISTINCT_M:  # (see TWISTING_SEGMENTS)
             joint_fit = _joint_fits(model, st, ks[r], lab, slot, maps, np.array([0, best]), cur)
-            take = not joint_fit[1] > joint_fit[0]
+            take = joint_fit[1] <= joint_fit[0]
         if take:
             proposals[r] = slot[maps[best]]
         else:
