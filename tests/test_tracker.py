@@ -754,14 +754,54 @@ def test_a_label_on_a_hidden_neighbours_point_is_put_back_by_the_free_point_thou
     assert set(np.flatnonzero(changed)) == {heel, toe}
 
 
-@pytest.mark.parametrize("fit_off_m", [0.0, 0.08])
+@pytest.mark.parametrize("label", ["wrong", "right"])
+def test_a_foots_lone_label_is_put_back_and_its_hidden_markers_labeled_by_two_free_points_and_its_joint(label):
+    """A foot whose heel and fifth metatarsal labels are lost, and whose one label left, the toe's, sits on
+    the heel's point (a tennis player's ankle label on the toe's point stayed there 6.5 s, the other two
+    points free beside it) or on its own. The two free points and the ankle where the fit puts it complete
+    the foot: after SHAPE_CONFIRM checks every label is on its own point, the labels the two free points
+    took on probation. Left alone: with the fit's ankle 30 cm off (a far-fetched triangle), and with one free point
+    only (nothing to register)."""
+    perf, model, R, points, _ = _right_foot([-0.07, 0.0, -0.04], [0.14, 0.02, -0.045], [0.09, -0.04, -0.045])
+    m = len(perf.marker_names)
+    heel, toe, mt5 = (perf.marker_names.index(n) for n in ("RHEE", "RTOE", "RMT5"))
+    points = np.vstack([points, points[heel] + [0.0, 0.0, 1.5]])  # a stray free point, far from the foot
+    start = np.arange(m)
+    start[[heel, mt5]] = -1
+    if label == "wrong":
+        start[toe] = heel
+
+    def run(shift_m, hidden=()):
+        st = tracker.new_state(model, points[:m], t_ns(0))
+        st.t_root_m, st.R_parent_segment = perf.root_position_m[0] + [0.0, 0.0, shift_m], R
+        st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
+        idx, changed = start.copy(), np.zeros(m, bool)
+        for _ in range(tracker.SHAPE_CONFIRM + 1):
+            cand = np.ones(len(points), bool)
+            cand[idx[idx >= 0]] = False
+            cand[list(hidden)] = False
+            changed |= _checked(lambda i, cur: tracker._complete_lone_label(model, st, points, cand, i, cur), points, idx)
+        return idx, changed, st
+
+    idx, changed, _ = run(0.3)
+    assert not changed.any() and (idx == start).all()
+    idx, changed, _ = run(0.0, hidden=[mt5])
+    assert not changed.any() and (idx == start).all()
+    idx, changed, st = run(0.0)
+    assert (idx == np.arange(m)).all()
+    assert set(np.flatnonzero(changed)) == ({heel, toe, mt5} if label == "wrong" else {heel, mt5})
+    on_free_points = [toe, mt5] if label == "wrong" else [heel, mt5]
+    assert (st.provisional[on_free_points] == tracker.PROBATION_FRAMES).all()
+
+
+@pytest.mark.parametrize("fit_off_m", [0.0, 0.2])
 def test_a_pair_misfitting_its_layout_by_skin_motion_is_kept_where_the_joint_fits_it(fit_off_m):
     """A forearm's RWRA and RFIN labels on their own points, the finger's point 16 mm farther from the wrist
     than in the layout (skin and joint motion: a pair misfits by 10-15 mm under pronation), RFRM and RWRB
     unlabeled, RWRB's point free, and a ghost where the pair, read as RWRB and RFIN, puts RWRA. That
     relabelling fits the layout and the misfit pair does not, but the elbow, where the fit puts it, fits
     the pair as labeled within COMPLETE_JOINT_RMS_M and clearly better: left alone (on 135_02 at L3 the
-    relabelling swapped the right wrist labels for 3 s). With the fit's elbow 8 cm off, the joint cannot
+    relabelling swapped the right wrist labels for 3 s). With the fit's elbow 20 cm off, the joint cannot
     vouch for the pair, and the relabelling is taken as before (a wrong pair's misfit)."""
     from protocol.skeleton import SEGMENTS
 
