@@ -1085,6 +1085,19 @@ def _labelings_fit(model: SubjectModel, slot: np.ndarray, maps: np.ndarray, join
     return rms3.reshape(C, P), rms4.reshape(C, P)
 
 
+def _segment_counts(model: SubjectModel, st: TrackState, point_index: np.ndarray):
+    """The layout checks' view of the labels: (slots, labeled, n_lab, n_spare), with each segment's
+    labeled and unlabeled layout markers counted (N_SEGMENTS,), or None if no layout was measured."""
+    slots = _layout_slots(model, st)
+    if slots is None:
+        return None
+    labeled = point_index >= 0
+    seg = model.marker_segment
+    n_lab = np.bincount(seg[labeled & slots], minlength=N_SEGMENTS)
+    n_spare = np.bincount(seg[~labeled & slots], minlength=N_SEGMENTS)
+    return slots, labeled, n_lab, n_spare
+
+
 def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndarray, cand: np.ndarray,
                             point_index: np.ndarray, cur: np.ndarray) -> np.ndarray:
     """Put back two labels of a segment permuted while its other markers hide, using a free point and the
@@ -1117,13 +1130,11 @@ def _complete_by_free_point(model: SubjectModel, st: TrackState, points: np.ndar
     98.035 %, none down, L2 and the off-suite files unchanged). As in `_relabel_by_shape`, the same
     relabelling must win SHAPE_CONFIRM checks running on a trusted layout, and the long-run partner
     distances must not object; the free point's label is on probation."""
-    slots = _layout_slots(model, st)
-    if slots is None:
+    counts = _segment_counts(model, st, point_index)
+    if counts is None:
         return np.zeros(len(point_index), bool)
-    labeled = point_index >= 0
+    slots, labeled, n_lab, n_spare = counts
     seg, layout = model.marker_segment, model.layout_offsets_m
-    n_lab = np.bincount(seg[labeled & slots], minlength=N_SEGMENTS)
-    n_spare = np.bincount(seg[~labeled & slots], minlength=N_SEGMENTS)
     trusted = _trusted_layouts(st)
     pool = np.flatnonzero(cand)
     before = point_index.copy()
@@ -1205,13 +1216,11 @@ def _complete_lone_label(model: SubjectModel, st: TrackState, points: np.ndarray
     labels are on probation. (Dev suite, 18 realizations: L3 98.018 -> 98.059 %, 9 runs up, none down; L2
     99.238 -> 99.241 %.)"""
     changed = np.zeros(len(point_index), bool)
-    slots = _layout_slots(model, st)
-    if slots is None:
+    counts = _segment_counts(model, st, point_index)
+    if counts is None:
         return changed
-    labeled = point_index >= 0
+    slots, labeled, n_lab, n_spare = counts
     seg, layout = model.marker_segment, model.layout_offsets_m
-    n_lab = np.bincount(seg[labeled & slots], minlength=N_SEGMENTS)
-    n_spare = np.bincount(seg[~labeled & slots], minlength=N_SEGMENTS)
     small = n_lab + n_spare <= SHAPE_ALL_MAPS + 1  # every labeling of three of its markers is tried
     checked = np.flatnonzero((n_lab == 1) & (n_spare >= 2) & small & _trusted_layouts(st))
     if not len(checked):
