@@ -122,6 +122,10 @@ SEARCH_FIT_AGE_FRAMES = 3.5
 SEARCH_JOINT_TOL_M = 0.03  # a point this close to a marker's distance from its joint may be it ...
 SEARCH_PAIR_TOL_M = 0.012  # ... two points this close to the model distance between two of its markers ...
 SEARCH_INLIER_M = 0.012  # ... and a marker with a point this close to where the registered segment puts it
+#: ... or this close, where three labeled markers of its segment put it: they place it by its layout alone,
+#: which skin and joint motion bend (a serving forearm's marker sat 12-21 mm from where the two wrist markers
+#: and the finger put it, and stayed unlabeled in view for 34 frames: tennis, two players, at L3)
+SEARCH_PLACED_INLIER_M = 0.024
 #: A segment whose joint is misplaced too (its parent segment moved unseen: a whole arm swung while the
 #: subject was lost) is looked for by its own layout, as a free rigid body whose joint lies this close to
 #: its bone's length from the grandparent joint (`_search_free_segment`).
@@ -718,7 +722,8 @@ def _around_joint(model: SubjectModel, o: np.ndarray, lab: np.ndarray, los: np.n
         # is where the fit puts it, within its residual): one point where they put a lost marker is it
         R, t = rigid_motion(base_a[1:], base_b[1:]) if len(lab) >= 3 else rigid_motion(base_a, base_b)
         at = off[los] @ R.T + t
-        hyps += [((i, p),) for r, i in enumerate(los) for p in options[i] if _norm(points[p] - at[r]) < SEARCH_INLIER_M]
+        gate = SEARCH_PLACED_INLIER_M if len(lab) >= 3 else SEARCH_INLIER_M
+        hyps += [((i, p),) for r, i in enumerate(los) for p in options[i] if _norm(points[p] - at[r]) < gate]
     elif len(lab):  # one point with the joint and a labeled marker already fixes the segment
         hyps += [((i, p),) for i in los for p in options[i]]
     for a, i in enumerate(los):
@@ -1251,8 +1256,10 @@ def _complete_lone_label(model: SubjectModel, st: TrackState, points: np.ndarray
             st.complete_votes.pop(key, None)
             continue
         new = tuple(int(i) for i in slot[maps[c]])  # (the points are renumbered every frame: markers only)
+        # (the vote is on the labeled point's label: which of the two free points is which follows their
+        # numbering, frame by frame; a vote on all three labels missed a tennis wrist's swap for 26 frames)
         votes = st.complete_votes.get(key, ((), 0))
-        votes = (new, votes[1] + 1 if votes[0] == new else 1)
+        votes = (new[:1], votes[1] + 1 if votes[0] == new[:1] else 1)
         st.complete_votes[key] = votes
         if votes[1] < SHAPE_CONFIRM:
             continue

@@ -174,6 +174,33 @@ def _turned_unseen(rng, turns: dict, measured_layouts: bool = False):
     return perf, model, st, old, markers(R_new), lambda root: markers(R_new, root)
 
 
+@pytest.mark.parametrize("off_mm, found", [(18, True), (40, False)])
+def test_a_lost_marker_is_found_where_three_labeled_markers_of_its_segment_put_it_despite_skin_motion(off_mm, found):
+    """A forearm's three other markers labeled, its fourth unlabeled in view: its point sits 18 mm from where
+    their layout puts it (skin and joint motion: a serving forearm's marker, 12-21 mm) and is found
+    (SEARCH_PLACED_INLIER_M); 40 mm away, it is not theirs to place."""
+    from protocol.skeleton import SEGMENTS
+    from service.calibration import world_transforms
+
+    perf, model, st, old, _, _ = _turned_unseen(np.random.default_rng(5), {})
+    forearm = np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
+    assert len(forearm) == 4
+    lost_one = forearm[0]
+    _, pw = world_transforms(st.t_root_m, st.R_parent_segment, perf.joint_offsets_m)
+    elbow = pw[SEGMENTS.index("r_forearm")]
+    radial = old[lost_one] - elbow
+    side = np.cross(radial, [0.0, 0.0, 1.0])
+    side /= np.linalg.norm(side)
+    points = old.copy()
+    points[lost_one] += off_mm * 1e-3 * side  # (about the same distance from the elbow: on its sphere)
+    labeled = np.arange(len(old)) != lost_one
+    cur = np.where(labeled[:, None], points, np.nan)
+    free = ~labeled
+    lost = ~labeled
+    want = {int(lost_one): int(lost_one)} if found else {}
+    assert tracker._search_segments(model, st, points, free, labeled, cur, lost) == want
+
+
 def test_a_segment_the_fit_lost_is_found_around_its_joint():
     """A forearm turned 80 degrees at the elbow while its markers went unlabeled: the fit (which had no
     word on it) still holds it where it was, its wrist 12 cm from its markers. Registered around the
@@ -754,14 +781,16 @@ def test_a_label_on_a_hidden_neighbours_point_is_put_back_by_the_free_point_thou
     assert set(np.flatnonzero(changed)) == {heel, toe}
 
 
+@pytest.mark.parametrize("renumbered", [False, True])
 @pytest.mark.parametrize("label", ["wrong", "right"])
-def test_a_foots_lone_label_is_put_back_and_its_hidden_markers_labeled_by_two_free_points_and_its_joint(label):
+def test_a_foots_lone_label_is_put_back_and_its_hidden_markers_labeled_by_two_free_points_and_its_joint(label, renumbered):
     """A foot whose heel and fifth metatarsal labels are lost, and whose one label left, the toe's, sits on
     the heel's point (a tennis player's ankle label on the toe's point stayed there 6.5 s, the other two
     points free beside it) or on its own. The two free points and the ankle where the fit puts it complete
     the foot: after SHAPE_CONFIRM checks every label is on its own point, the labels the two free points
-    took on probation. Left alone: with the fit's ankle 30 cm off (a far-fetched triangle), and with one free point
-    only (nothing to register)."""
+    took on probation, also when the two free points trade numbers from frame to frame (a capture system
+    numbers its points anew every frame). Left alone: with the fit's ankle 30 cm off (a far-fetched
+    triangle), and with one free point only (nothing to register)."""
     perf, model, R, points, _ = _right_foot([-0.07, 0.0, -0.04], [0.14, 0.02, -0.045], [0.09, -0.04, -0.045])
     m = len(perf.marker_names)
     heel, toe, mt5 = (perf.marker_names.index(n) for n in ("RHEE", "RTOE", "RMT5"))
@@ -775,12 +804,21 @@ def test_a_foots_lone_label_is_put_back_and_its_hidden_markers_labeled_by_two_fr
         st = tracker.new_state(model, points[:m], t_ns(0))
         st.t_root_m, st.R_parent_segment = perf.root_position_m[0] + [0.0, 0.0, shift_m], R
         st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
-        idx, changed = start.copy(), np.zeros(m, bool)
-        for _ in range(tracker.SHAPE_CONFIRM + 1):
-            cand = np.ones(len(points), bool)
+        idx, changed, pts = start.copy(), np.zeros(m, bool), points.copy()
+        free = [p for p in range(m) if p not in start]
+        for k in range(tracker.SHAPE_CONFIRM + 1):
+            if renumbered and k:  # the two free points (of the first frame) trade numbers
+                perm = np.arange(len(pts))
+                perm[free] = perm[free[::-1]]
+                pts, idx = pts[perm], np.where(idx >= 0, perm[np.maximum(idx, 0)], -1)
+            cand = np.ones(len(pts), bool)
             cand[idx[idx >= 0]] = False
             cand[list(hidden)] = False
-            changed |= _checked(lambda i, cur: tracker._complete_lone_label(model, st, points, cand, i, cur), points, idx)
+            changed |= _checked(lambda i, cur: tracker._complete_lone_label(model, st, pts, cand, i, cur), pts, idx)
+        if renumbered and tracker.SHAPE_CONFIRM % 2 == 1:  # (back to the first frame's numbering)
+            perm = np.arange(len(pts))
+            perm[free] = perm[free[::-1]]
+            idx = np.where(idx >= 0, perm[np.maximum(idx, 0)], -1)
         return idx, changed, st
 
     idx, changed, _ = run(0.3)
