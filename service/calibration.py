@@ -40,6 +40,7 @@ _SHOULDER_Z, _SHOULDER_Y = 0.815, 0.125
 _UPPERARM, _FOREARM_HAND = 0.186, 0.25
 _KNEE_Z, _ANKLE_Z = 0.285, 0.045
 _FOOT_FWD = 0.11
+_SHIN_ABOVE_FOOT = 0.04  # (`_body_frame`) a foot marker this far above the others [height] is a shin marker
 _FOOT_LENGTH = 0.16  # heel to toe tip, with a marker's reach: Winter's 0.152 of height
 _PELVIS_RISE = 0.04  # the pelvis's bone across the hips runs this far above the hip joints
 # a marker inside the shoulders' width is an arm marker within this of the estimated arm bones (an upper-arm
@@ -104,6 +105,12 @@ def _body_frame(P: np.ndarray) -> tuple[BodyFrame, float]:
     side_of = (P[:, :2] - P[foot, :2].mean(0)) @ lateral
     for side in (side_of > 0, side_of <= 0):
         f_idx = np.flatnonzero(foot & side)
+        # a marker standing well above the foot's others is low on the shin, not the ankle's (an ankle
+        # marker sits 3-5 cm above heel and toe; a tennis player's tibia marker, 18 cm up, took the
+        # ankle's place as the top marker and the foot voted backwards)
+        z_top = np.sort(P[f_idx, 2])
+        if len(f_idx) >= 3 and z_top[-1] - z_top[-2] > _SHIN_ABOVE_FOOT * h:
+            f_idx = f_idx[P[f_idx, 2] < z_top[-1]]
         if len(f_idx) < 2:
             continue
         top = f_idx[np.argmax(P[f_idx, 2])]
@@ -630,9 +637,10 @@ def mirrored_markers(markers, marker_segment: np.ndarray, marker_offsets_m: np.n
     """The markers a subject's names imply but its model lacks (RBHD for a model with LBHD and no RBHD: a
     marker hidden through the whole seed), as (name, segment, offset): where the named marker's mirror image
     sits. The image is taken across the plane the subject's own pairs show: the named pairs between the
-    marker's segment and its mirror segment (LFHD and RFHD for a head marker; the toes and heels for a foot),
-    with the joint onto the joint, place the mirror segment by Kabsch (flipping y in the rest frames alone
-    left RBHD 6 cm off on the tennis serve: a head turned in the seed turns its frame). Left out: an image
+    marker's segment and its mirror segment (LFHD and RFHD for a head marker; the toes and heels for a foot)
+    place the mirror segment, turned about the vertical (`_yaw_motion`; flipping y in the rest frames alone
+    left RBHD 6 cm off on the tennis serve: a head turned in the seed turns its frame); with one pair or
+    none, the flip alone. Left out: an image
     within `clear_m` of a marker the model has on that segment (a midline marker's image is itself,
     whatever its name), and names its markers imply twice."""
     have = {name: i for i, name in enumerate(markers)}
@@ -643,21 +651,35 @@ def mirrored_markers(markers, marker_segment: np.ndarray, marker_offsets_m: np.n
         if other is None or other in have or k < 0:
             continue
         seg = int(MIRROR_SEGMENT[k])
-        src, dst = [np.zeros(3)], [np.zeros(3)]  # the joint onto the joint
+        src, dst = [], []
         for a, i in have.items():
             j = have.get(mirror_name(a) or "")
             if j is not None and marker_segment[i] == k and marker_segment[j] == seg:
                 src.append(marker_offsets_m[i] * flip)
                 dst.append(marker_offsets_m[j])
         image = off * flip
-        if len(src) >= 3:
-            R, t = rigid_motion(np.array(src), np.array(dst))
+        if len(src) >= 2:  # (the pairs alone: the calibration may place the two joints unlike)
+            R, t = _yaw_motion(np.array(src), np.array(dst))
             image = R @ image + t
         mine = marker_offsets_m[marker_segment == seg]
         if len(mine) and np.min(np.linalg.norm(mine - image, axis=1)) < clear_m:
             continue
         found[other] = None if other in found else (other, seg, image)
     return [v for v in found.values() if v is not None]
+
+
+def _yaw_motion(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation about z (3, 3) and translation (3,) that best take points a (N, 3) onto b (N, 3): a
+    segment's frame and its mirror segment's, both upright in the calibration pose, differ by how the
+    two limbs turn. (A free rotation, fitted to a foot's joint and two markers, points nearly in a line
+    whose joints the calibration placed unlike on the two feet, turned a mirrored heel 14 cm upwards:
+    tennis at L3, a left heel hidden through the seed never found.)"""
+    ca, cb = a.mean(0), b.mean(0)
+    p, q = a - ca, b - cb
+    theta = np.arctan2(np.sum(p[:, 0] * q[:, 1] - p[:, 1] * q[:, 0]), np.sum(p[:, 0] * q[:, 0] + p[:, 1] * q[:, 1]))
+    c, s_ = np.cos(theta), np.sin(theta)
+    R = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    return R, cb - R @ ca
 
 
 def world_transforms(t_root: np.ndarray, R_parent_segment: np.ndarray, joint_offsets: np.ndarray):

@@ -375,13 +375,16 @@ def test_hands_resting_on_the_hips_stay_on_the_forearms(level, seed):
     ("kineticstoolkit/kinematics_tennis_serve.c3d", "Derrick", "L3", 4),
     ("kineticstoolkit/kinematics_tennis_serve_2players.c3d", "Viktor", "L3", 4),  # toes raised, turning into the serve
     ("kineticstoolkit/kinematics_tennis_serve_2players.c3d", "Viktor", "L2", 5),
+    ("kineticstoolkit/kinematics_tennis_serve.c3d", "Derrick", "L3", 9),  # a low tibia marker atop the foot
 ])
 def test_a_seed_calibration_faces_the_subject_the_way_it_faces(file, subject, level, seed):
     """Real data: seeds whose calibration faced backwards (every left marker on a right segment, a skeleton
     whose knees bend forwards for the consumers of its poses). Which way a body faces comes from its feet,
     toe ahead of ankle, voted over the seed's frames: a walker's heel-strike frame put the other foot, a
     stride away, in one foot's half and outvoted the rest; a foot whose toe marker was hidden voted with
-    its heel; a foot with its toes raised, or on tiptoe with a low shin marker on top, voted backwards."""
+    its heel; a foot with its toes raised, or on tiptoe with a low shin marker on top, voted backwards; a
+    tibia marker 18 cm up stood in for the ankle marker of the one foot with three (the other's heel hidden
+    through the seed) and voted backwards."""
     got = _seed_calibration(file, subject, level, seed)
     crossed = [f"{m}->{s}" for m, s in got.items() if (m[0], s[:2]) in (("L", "r_"), ("R", "l_"))]
     assert crossed == []
@@ -457,3 +460,24 @@ def test_mirrored_markers_are_the_images_of_named_markers_the_model_lacks():
     assert got["RHEE"][0] == rfoot and got["RBHD"][0] == head
     np.testing.assert_allclose(got["RBHD"][1], [-0.07, -0.05, 0.1])
     np.testing.assert_allclose(got["RHEE"][1], [-0.05, 0.0, -0.06])
+
+
+def test_a_mirrored_marker_follows_its_named_pairs_where_the_two_feet_turn_and_their_joints_differ():
+    """LHEE hidden through the seed: its image is RHEE's, carried onto the left foot by the named pairs
+    (ankle and toe) alone, turning about the vertical: the left foot turned out 35 degrees more than the
+    right, and its joint placed 12 cm off where the right's is. With the joint as a third pair and a free
+    rotation, the points nearly in a line, the image was turned 14 cm upwards (tennis, L3)."""
+    lfoot, rfoot = SEGMENTS.index("l_foot"), SEGMENTS.index("r_foot")
+    right = {"RANK": [-0.04, -0.12, -0.03], "RTOE": [0.11, -0.09, -0.05], "RHEE": [-0.09, -0.07, -0.07]}
+    turn = Rotation.from_rotvec([0.0, 0.0, np.radians(35)]).as_matrix()
+    shift = np.array([-0.12, 0.03, 0.0])  # the left joint placed elsewhere on its foot
+
+    def on_left(offset):
+        return turn @ (np.array(offset) * [1.0, -1.0, 1.0]) + shift
+
+    markers = ("RANK", "RTOE", "RHEE", "LANK", "LTOE")
+    seg = np.array([rfoot, rfoot, rfoot, lfoot, lfoot])
+    off = np.array([right["RANK"], right["RTOE"], right["RHEE"], on_left(right["RANK"]), on_left(right["RTOE"])])
+    got = {name: (k, o) for name, k, o in mirrored_markers(markers, seg, off, 0.03)}
+    assert sorted(got) == ["LHEE"] and got["LHEE"][0] == lfoot
+    np.testing.assert_allclose(got["LHEE"][1], on_left(right["RHEE"]), atol=1e-9)
