@@ -515,7 +515,9 @@ def calibrate_from_history(history_m: np.ndarray):
     (`articulation_error`); the best replaces the fullest frame's when it scores under CANDIDATE_GAIN of
     it. Each frame is calibrated twice, legs straight down and then to where the first pass's feet stand
     (`calibrate`'s feet_of), and the better scoring of the two counts. Markers never seen keep offset
-    zero (the engine parks them until they are seen). Pure, for the helper process."""
+    zero on whatever segment the calibration left them (nothing is known of them: a refinement,
+    `engine.refined_model`, moves them once they are seen and the fit suffers). Pure, for the helper
+    process."""
     seen = np.isfinite(history_m[..., 0]).sum(1)
     first = int(np.argmax(seen))
     full = np.flatnonzero(seen >= seen[first] - 2)
@@ -533,7 +535,7 @@ def calibrate_from_history(history_m: np.ndarray):
             except CalibrationError:
                 break
             feet_of = seg
-            off = np.where(ok[:, None], off, 0.0)  # never seen: parked on the pelvis with zero weight
+            off = np.where(ok[:, None], off, 0.0)  # never seen: at the segment's origin (see above)
             layout = layout_residuals(history_m, seg, off)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # nothing measured: NaN, scored as the worst
