@@ -7,8 +7,9 @@ lasts, a marker lost for good), so a change is judged by the mean over many, and
 
 Runs the adaptive engine in seeded mode on every labeled file x level x corruption seed (each file capped
 at its first 25 s, as the benchmark), in 2 processes: 8 files x L2/L3 x 18 seeds take ~5 min. Prints, per
-file and level, the mean and the worst accuracy and the mean precision; with --compare, beside those of an
-earlier run's JSON, and every run that moved by 0.005 % or more.
+file and level, the mean and the worst accuracy, the mean precision and the skeleton solves' residual p90
+(the median and the worst of the runs: is the skeleton still on its markers?); with --compare, beside those
+of an earlier run's JSON, and every run that moved by 0.005 % or more.
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ import dataclasses
 import json
 import sys
 from pathlib import Path
+
+import numpy as np
 
 from benchmarks.run import (DEFAULT_DATA, FULL_MAX_S, UsageError, labeled_files, plan, run_jobs,
                             select_files)
@@ -31,7 +34,9 @@ DEV_FILES = ("cmu/135_02.c3d", "cmu/85_12.c3d", "cmu/85_02.c3d", "cmu/07_01.c3d"
 
 
 def run(data_dir: Path, files: list[str], levels: list[str], seeds: list[int], workers: int = 2) -> list[dict]:
-    """One row per file x level x seed: accuracy, precision [%], true points, wrong, unlabeled, error."""
+    """One row per file x level x seed: accuracy, precision [%], true points, wrong, unlabeled, the skeleton
+    solves' RMS residual p90 [mm] (NaN without solves: how far the skeleton strays from the markers on its
+    worse frames; a calibration that puts a segment's markers on another reads hundreds), error."""
     from service.config import ServiceConfig
 
     jobs, _ = plan(data_dir, files, levels, FULL_MAX_S)
@@ -39,23 +44,30 @@ def run(data_dir: Path, files: list[str], levels: list[str], seeds: list[int], w
     results = run_jobs(data_dir, jobs, workers, str(Path(ServiceConfig().cache_dir).expanduser()))
     rows = [dict(file=r.job.file, level=r.job.level, seed=r.job.seed, acc=100 * r.score.accuracy,
                  prec=100 * r.score.precision, n=int(r.score.n_true_points), wrong=int(r.score.n_wrong),
-                 unlabeled=int(r.score.n_unlabeled), error=r.error) for r in results]
+                 unlabeled=int(r.score.n_unlabeled), fit_p90_mm=_p90(r.fit_rms_mm), error=r.error) for r in results]
     return sorted(rows, key=lambda r: (r["file"], r["level"], r["seed"]))
 
 
+def _p90(values: list[float]) -> float:
+    return float(np.percentile(values, 90)) if len(values) else float("nan")
+
+
 def _cells(rows: list[dict]) -> list[str]:
-    """["accuracy mean / worst", "precision mean"] of some runs, in %."""
+    """["accuracy mean / worst", "precision mean", "solve residual p90, median of the runs"] of some runs."""
     if not rows:
-        return ["–", "–"]
+        return ["–", "–", "–"]
+    p90 = [r.get("fit_p90_mm", np.nan) for r in rows]
     return [f"{sum(r['acc'] for r in rows) / len(rows):.2f} / {min(r['acc'] for r in rows):.2f}",
-            f"{sum(r['prec'] for r in rows) / len(rows):.2f}"]
+            f"{sum(r['prec'] for r in rows) / len(rows):.2f}",
+            f"{np.nanmedian(p90):.0f} / {np.nanmax(p90):.0f}" if np.isfinite(p90).any() else "–"]
 
 
 def summary(rows: list[dict], before: list[dict] | None = None) -> list[str]:
     """Markdown lines: per file and level, mean / worst accuracy and mean precision (beside `before`'s)."""
     old = {(r["file"], r["level"], r["seed"]): r for r in before or []}
-    lines = ["| file | level | runs | accuracy mean / worst | precision mean |" + (" before: accuracy mean / worst | precision mean |" if before else ""),
-             "|---|---|---|---|---|" + ("---|---|" if before else "")]
+    head = "accuracy mean / worst | precision mean | residual p90 median / worst [mm] |"
+    lines = ["| file | level | runs | " + head + (" before: " + head if before else ""),
+             "|---|---|---|---|---|---|" + ("---|---|---|" if before else "")]
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
         groups.setdefault((r["file"], r["level"]), []).append(r)

@@ -4,8 +4,9 @@
   Skin moves over bone and the model has no shoulder girdle, so ~10 mm is good; tens of mm mean a limb is
   mis-posed or carries another limb's markers.
 - Whether each marker rides the segment its name says, for the naming conventions we can read (the
-  CMU / HDM05 41-marker set and Plug-in Gait, which share their stems). The engine never reads names:
-  this checks its calibration against what an operator would expect. Markers over a joint (SHO, ELB,
+  CMU / HDM05 41-marker set and Plug-in Gait, which share their stems). The engine reads no segment
+  from names (only which markers are left/right twins): this checks its calibration against what an
+  operator would expect. Markers over a joint (SHO, ELB,
   KNE, ANK), whose segment is a matter of convention, are not judged.
 
 The same judgement over many corrupted realizations, calibration alone (no tracking: a minute for the 12
@@ -93,12 +94,12 @@ def seed_history(seq, subject: str) -> tuple[list[str], np.ndarray]:
 def seed_calibration(seq, subject: str) -> dict[str, str] | None:
     """{marker name: segment} of `subject` calibrated from its seed, or None if no frame calibrates."""
     from protocol.skeleton import SEGMENTS
-    from service.calibration import calibrate_from_history
+    from service.calibration import calibrate_from_history, mirror_index
 
     names, history = seed_history(seq, subject)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # markers never seen in the seed: all-NaN columns
-        result = calibrate_from_history(history)
+        result = calibrate_from_history(history, mirror_index([n.partition(":")[2] for n in names]))
     return None if result is None else {n: SEGMENTS[k] for n, k in zip(names, result[0])}
 
 

@@ -1,7 +1,8 @@
 """Subject calibration: from a cloud of identified markers in an upright pose to a skeleton model.
 
-Works for any marker set: nothing here knows marker names. The subject's size is the height of its top
-marker above its lowest; the vertical axis is z; the left-right axis is the main horizontal axis of the
+Works for any marker set, with no template: the one thing read from marker names, where they have it, is
+their side (LKNE / RKNE are twins, `mirror_name`). The subject's size is the height of its top marker above
+its lowest; the vertical axis is z; the left-right axis is the main horizontal axis of the
 cloud above the knees (shoulders and, in a T-pose, arms span it); forward is the perpendicular that points
 from the shanks to the feet (toes stick out forward). Arms are placed along the line from each shoulder
 to the farthest marker on that side, so a T-pose, hanging arms or a reach all calibrate. Each marker then
@@ -12,7 +13,10 @@ marker offsets are the markers' positions in their segment frames.
 From labeled history (`calibrate_from_history`), the markers that keep their distances go to one segment
 (`_by_rigidity`), a left/right pair of limb segments crossed by the geometry is uncrossed by the chain above
 it (`_uncross_sides`), and of several frames' calibrations the one whose segments move most rigidly and whose
-joints hold best over the history is kept (one frame's pose can mislead the body frame).
+joints hold best over the history is kept (one frame's pose can mislead the body frame). Where the names
+give twins, the kept calibration puts them on mirror segments: two segments that took each other's
+markers exchange them back (`_mirror_segments`), then each twin off its mirror segment goes where the
+history says (`_mirror_pairs`).
 
 `detect_tpose` finds people standing in a T-pose in an unlabeled cloud (automatic initialisation).
 """
@@ -194,14 +198,15 @@ def _seg_dist(q, a, b):
 
 def calibrate(
     positions_m: np.ndarray, history_m: np.ndarray | None = None, distance_sd: np.ndarray | None = None,
-    feet_of: np.ndarray | None = None, votes: list | None = None,
+    feet_of: np.ndarray | None = None, votes: list | None = None, mirror_of: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Skeleton of an upright subject from one frame of its markers (M, 3; NaN = unseen, filled by caller).
     With `history_m` (F, M, 3) showing motion, markers whose nearest bones are close calls go to the
     segment whose markers keep the steadiest distances to them (they move rigidly together);
     `distance_sd`, the history's `_distance_sd` if the caller has it. `feet_of`, the marker segments of a
     first calibration of the same frame: its feet keep their markers, and the legs run to where they stand.
-    `votes`, the history's `heading_votes` if the caller has them.
+    `votes`, the history's `heading_votes` if the caller has them. `mirror_of`, each marker's named twin
+    (`mirror_index`): with a history, twins are then put on mirror segments (`_mirror_pairs`).
 
     Returns (marker_segment (M,), marker_offsets_m (M, 3), joint_offsets_m (14, 3), t_world_root_m (3,),
     R_parent_segment (14, 3, 3)) — the calibration pose is the model's zero pose.
@@ -312,6 +317,8 @@ def calibrate(
         sd = _distance_sd(history_m) if distance_sd is None else distance_sd
         marker_segment = _by_rigidity(marker_segment, cost, history_m, bone_cost, sd=sd)
         marker_segment = _uncross_sides(marker_segment, sd)
+        if mirror_of is not None:
+            marker_segment = _mirror_pairs(marker_segment, sd, mirror_of, bone_cost)
     joints_world = np.stack([J[n] for n in SEGMENTS]) * h @ bf.R_world_body.T + bf.origin_m
     joint_offsets = np.zeros((len(SEGMENTS), 3))
     for i, p in enumerate(PARENTS):
@@ -434,6 +441,85 @@ def _uncross_sides(marker_segment: np.ndarray, sd: np.ndarray) -> np.ndarray:
     return out
 
 
+# Named twins on mirror segments: two segments exchange their markers when that mends MIRROR_SWAP_GAIN more
+# twins than it parts (`_mirror_segments`); a twin may move to a segment up to MIRROR_STEADY_RATIO times
+# less steady to it than its own (`_mirror_pairs`); the mended calibration is kept if it scores within
+# MIRROR_SCORE_SLACK of the one chosen unmended (`calibrate_from_history`).
+MIRROR_SWAP_GAIN = 3
+MIRROR_STEADY_RATIO = 1.5
+MIRROR_SCORE_SLACK = 1.25
+
+
+def _mirror_pairs(marker_segment: np.ndarray, sd: np.ndarray, mirror_of: np.ndarray, bone_cost: np.ndarray
+                  ) -> np.ndarray:
+    """Put named twins (LTHI and RTHI: `mirror_of[i]`, the index of marker i's twin, or -1) on mirror
+    segments. Where they are not, one of the two is on the wrong segment, and one of two moves mends it:
+    the twin whose distances to the new segment's markers are about as steady as to its own's (within
+    MIRROR_STEADY_RATIO) may move, and of two that may, the one nearer its new bone (`bone_cost`, in
+    heights) does (an elbow that hardly bent in the history leaves a forearm marker's steadiness alike on
+    both arm segments). A move onto a segment left empty, from one next to it (a shin marker on the thigh,
+    the shank bare), is taken when no other is."""
+    out = _mirror_segments(marker_segment, mirror_of)
+    m = len(out)
+
+    def steadiness(i: int, k: int) -> float:
+        own = np.flatnonzero((out == k) & (np.arange(m) != i))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # no pair seen together: all-NaN
+            return float(np.nanmedian(sd[i, own])) + 0.001 if len(own) else float("nan")
+
+    for i in range(m):
+        j = int(mirror_of[i])
+        if j <= i or MIRROR_SEGMENT[out[i]] == out[j]:
+            continue
+        options, bare = [], []
+        for x, k in ((i, int(MIRROR_SEGMENT[out[j]])), (j, int(MIRROR_SEGMENT[out[i]]))):
+            now, new = steadiness(x, out[x]), steadiness(x, k)
+            if new <= MIRROR_STEADY_RATIO * now:  # (NaN compares False)
+                options.append((np.nan_to_num(bone_cost[x, k], nan=np.inf), new / now, x, k))
+            elif not (out == k).any() and (PARENTS[k] == out[x] or PARENTS[out[x]] == k):
+                bare.append((0.0, 0.0, x, k))
+        if options or bare:
+            _, _, x, k = min(options or bare)
+            out[x] = k
+    return out
+
+
+def _mirror_segments(marker_segment: np.ndarray, mirror_of: np.ndarray) -> np.ndarray:
+    """Give two segments each other's markers when that puts MIRROR_SWAP_GAIN more named twins on mirror
+    segments than it parts, the best such exchange first. Rigidity gathers the markers that move together,
+    and the bones' geometry names the groups; a hand resting on the hip through the seed sat by the
+    pelvis's bone, and the groups' names came out exchanged (a tennis player's ASIS and PSIS on the right
+    forearm, its wrist and finger markers on the pelvis: LFIN on the left forearm, RFIN on the pelvis).
+    """
+    out = marker_segment.copy()
+    pairs = np.flatnonzero(mirror_of > np.arange(len(out)))
+    partner = mirror_of[pairs]
+
+    def agreeing(seg: np.ndarray) -> int:
+        return int((MIRROR_SEGMENT[seg[pairs]] == seg[partner]).sum())
+
+    for _ in range(len(SEGMENTS)):
+        now, best, swap = agreeing(out), MIRROR_SWAP_GAIN - 1, None
+        present = np.unique(out)
+        for a in present:
+            for b in present[present > a]:
+                trial = np.where(out == a, b, np.where(out == b, a, out))
+                gain = agreeing(trial) - now
+                if gain > best:
+                    best, swap = gain, trial
+        if swap is None:
+            break
+        out = swap
+    return out
+
+
+def mirror_index(markers) -> np.ndarray:
+    """(M,) each marker's named twin (`mirror_name`) among `markers`, -1 where it has none."""
+    have = {name: i for i, name in enumerate(markers)}
+    return np.array([have.get(mirror_name(n) or "", -1) for n in markers], dtype=np.int64)
+
+
 def _is_arm(k: int) -> bool:
     return SEGMENTS[k].endswith(("upperarm", "forearm"))
 
@@ -504,7 +590,7 @@ CANDIDATE_FRAMES = 4
 CANDIDATE_GAIN = 0.35
 
 
-def calibrate_from_history(history_m: np.ndarray):
+def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None = None):
     """(marker_segment, marker_offsets_m, joint_offsets_m, t_world_root_m, R_parent_segment, layout_rms_m)
     of the calibration that best explains labeled history (F, M, 3), or None if no frame of it calibrates.
 
@@ -516,40 +602,52 @@ def calibrate_from_history(history_m: np.ndarray):
     it. Each frame is calibrated twice, legs straight down and then to where the first pass's feet stand
     (`calibrate`'s feet_of), and the better scoring of the two counts. Markers never seen keep offset
     zero on whatever segment the calibration left them (nothing is known of them: a refinement,
-    `engine.refined_model`, moves them once they are seen and the fit suffers). Pure, for the helper
-    process."""
+    `engine.refined_model`, moves them once they are seen and the fit suffers). With `mirror_of` (each
+    marker's named twin, `mirror_index`), the chosen calibration is made again with its twins mended
+    (`calibrate`'s mirror_of), and kept if it scores within MIRROR_SCORE_SLACK of it. Pure, for the
+    helper process."""
     seen = np.isfinite(history_m[..., 0]).sum(1)
     first = int(np.argmax(seen))
     full = np.flatnonzero(seen >= seen[first] - 2)
     others = full[np.linspace(0, len(full) - 1, min(CANDIDATE_FRAMES, len(full))).astype(int)]
     sd = _distance_sd(history_m)
     votes = heading_votes(history_m) if len(history_m) >= 10 else None  # (as `calibrate` would, once)
-    best, best_score, first_score = None, np.inf, np.inf
+
+    def attempt(ref: np.ndarray, feet_of: np.ndarray | None, mirror: np.ndarray | None):  # (score, result)
+        ok = np.isfinite(ref[:, 0])
+        seg, off, joints, t_root, R = calibrate(np.where(ok[:, None], ref, np.nan), history_m, sd, feet_of, votes,
+                                                mirror)
+        off = np.where(ok[:, None], off, 0.0)  # never seen: at the segment's origin (see above)
+        layout = layout_residuals(history_m, seg, off)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # nothing measured: NaN, scored as the worst
+            score = np.nanmedian(layout) + articulation_error(ref, history_m, seg, joints, t_root, R)
+        return (score if np.isfinite(score) else np.inf), (seg, off, joints, t_root, R, layout)
+
+    best, best_score, first_score, best_args = None, np.inf, np.inf, None
     for i in [first, *sorted(set(others.tolist()) - {first})]:
         ref = fill_reference(history_m, frame=i)
-        ok = np.isfinite(ref[:, 0])
-        score, result, feet_of = np.inf, None, None
+        score, result, feet_of, args = np.inf, None, None, None
         for _ in range(2):  # legs straight down, then to where the first pass's feet stand; the better counts
             try:
-                seg, off, joints, t_root, R = calibrate(np.where(ok[:, None], ref, np.nan), history_m, sd, feet_of, votes)
+                s_, r_ = attempt(ref, feet_of, None)
             except CalibrationError:
                 break
-            feet_of = seg
-            off = np.where(ok[:, None], off, 0.0)  # never seen: at the segment's origin (see above)
-            layout = layout_residuals(history_m, seg, off)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # nothing measured: NaN, scored as the worst
-                s_ = np.nanmedian(layout) + articulation_error(ref, history_m, seg, joints, t_root, R)
-            s_ = s_ if np.isfinite(s_) else np.inf
             if result is None or s_ < score:
-                score, result = s_, (seg, off, joints, t_root, R, layout)
+                score, result, args = s_, r_, (ref, feet_of)
+            feet_of = r_[0]
         if result is None:
             continue
-        seg, off, joints, t_root, R, layout = result
         if best is None:
             first_score = score
         if best is None or (score < best_score and score < CANDIDATE_GAIN * first_score):
-            best, best_score = (seg, off, joints, t_root, R, layout), score
+            best, best_score, best_args = result, score, args
+    if best is not None and mirror_of is not None and (mirror_of >= 0).any():
+        # named twins mended on the chosen calibration only (mended, a poor frame's calibration scored
+        # close enough to a good one's to keep it: the tennis player's wrists stayed on the thighs)
+        score, result = attempt(*best_args, mirror_of)
+        if score <= MIRROR_SCORE_SLACK * best_score:
+            best = result
     return best
 
 

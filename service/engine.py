@@ -427,7 +427,8 @@ class Engine:
             return
         s.next_calibration_frame = s.state.frames + 120
         delay = max(self._frames(s, CALIBRATE_APPLY_S), self._queue_frames(s))
-        job = self._worker().submit(calibration.calibrate_from_history, np.stack(s.history))
+        job = self._worker().submit(calibration.calibrate_from_history, np.stack(s.history),
+                                    calibration.mirror_index(s.model.markers))
         s.calibration_job = (job, s.state.frames + delay)
 
     def _maybe_refine(self, s: _Subject) -> None:

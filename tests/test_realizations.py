@@ -6,15 +6,16 @@ from __future__ import annotations
 from benchmarks.realizations import main, summary
 
 
-def _row(file, level, seed, acc, prec=100.0):
-    return dict(file=file, level=level, seed=seed, acc=acc, prec=prec, n=100, wrong=0, unlabeled=0, error="")
+def _row(file, level, seed, acc, prec=100.0, fit_p90_mm=20.0):
+    return dict(file=file, level=level, seed=seed, acc=acc, prec=prec, n=100, wrong=0, unlabeled=0,
+                fit_p90_mm=fit_p90_mm, error="")
 
 
 def test_summary_gives_mean_and_worst_per_file_and_level_and_what_moved():
-    before = [_row("a.c3d", "L3", 0, 90.0), _row("a.c3d", "L3", 1, 98.0), _row("b.c3d", "L3", 0, 99.0)]
-    after = [_row("a.c3d", "L3", 0, 96.0), _row("a.c3d", "L3", 1, 98.0), _row("b.c3d", "L3", 0, 99.0, 99.5)]
+    before = [_row("a.c3d", "L3", 0, 90.0, fit_p90_mm=500.0), _row("a.c3d", "L3", 1, 98.0), _row("b.c3d", "L3", 0, 99.0)]
+    after = [_row("a.c3d", "L3", 0, 96.0, fit_p90_mm=24.0), _row("a.c3d", "L3", 1, 98.0), _row("b.c3d", "L3", 0, 99.0, 99.5)]
     text = "\n".join(summary(after, before))
-    assert "| a.c3d | L3 | 2 | 97.00 / 96.00 | 100.00 | 94.00 / 90.00 | 100.00 |" in text
+    assert "| a.c3d | L3 | 2 | 97.00 / 96.00 | 100.00 | 22 / 24 | 94.00 / 90.00 | 100.00 | 260 / 500 |" in text
     assert "L3: 3 runs, accuracy mean 97.667 %, precision mean 99.833 % (before, same runs: 95.667 / 100.000 %)" in text
     assert "runs that moved: 2" in text
     assert "- a.c3d L3 seed 0: accuracy 90.000 -> 96.000, precision 100.000 -> 100.000" in text
@@ -23,7 +24,9 @@ def test_summary_gives_mean_and_worst_per_file_and_level_and_what_moved():
 
 def test_summary_without_an_earlier_run():
     text = "\n".join(summary([_row("a.c3d", "L2", 0, 99.0)]))
-    assert "| a.c3d | L2 | 1 | 99.00 / 99.00 | 100.00 |" in text and "moved" not in text
+    assert "| a.c3d | L2 | 1 | 99.00 / 99.00 | 100.00 | 20 / 20 |" in text and "moved" not in text
+    no_solves = "\n".join(summary([_row("a.c3d", "L2", 0, 99.0, fit_p90_mm=float("nan"))]))
+    assert "| a.c3d | L2 | 1 | 99.00 / 99.00 | 100.00 | – |" in no_solves
 
 
 def test_the_command_refuses_bad_seeds_data_and_comparisons_in_one_sentence(tmp_path, capsys):
