@@ -318,7 +318,7 @@ def calibrate(
         marker_segment = _by_rigidity(marker_segment, cost, history_m, bone_cost, sd=sd)
         marker_segment = _uncross_sides(marker_segment, sd)
         if mirror_of is not None:
-            marker_segment = _mirror_pairs(marker_segment, sd, mirror_of, bone_cost)
+            marker_segment = _mirror_pairs(_mirror_segments(marker_segment, mirror_of), sd, mirror_of, bone_cost)
     joints_world = np.stack([J[n] for n in SEGMENTS]) * h @ bf.R_world_body.T + bf.origin_m
     joint_offsets = np.zeros((len(SEGMENTS), 3))
     for i, p in enumerate(PARENTS):
@@ -459,7 +459,7 @@ def _mirror_pairs(marker_segment: np.ndarray, sd: np.ndarray, mirror_of: np.ndar
     heights) does (an elbow that hardly bent in the history leaves a forearm marker's steadiness alike on
     both arm segments). A move onto a segment left empty, from one next to it (a shin marker on the thigh,
     the shank bare), is taken when no other is."""
-    out = _mirror_segments(marker_segment, mirror_of)
+    out = marker_segment.copy()
     m = len(out)
 
     def steadiness(i: int, k: int) -> float:
