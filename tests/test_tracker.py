@@ -1315,3 +1315,20 @@ def test_labels_the_layout_checks_moved_are_not_swapped_back_by_a_fit_that_follo
     assert res.point_index.tolist() == expected.tolist()
     if hold:
         assert st.layout_hold.tolist() == [0, 0, 0] + [tracker.SHAPE_HOLD_FRAMES - 1] * 2 + [0, 0]
+
+
+def test_a_fast_hand_held_only_by_loose_partners_keeps_its_tracked_label():
+    """A hand marker 0.5 m out whose only partners are trunk markers across the joint (their distances to it
+    vary by centimetres: it swung during the seed) whips round, up to 6 cm a frame. Tracking follows it; its
+    partners, which hold it no better than the spread of those distances (`_partner_sigma`), put it where it
+    was a frame ago. The correct label is kept on every frame: withdrawn, a neighbour's label took its point
+    (the serving arm of the two-player tennis file). Fails with RIGID_LOOSE_K = 0."""
+    n, seed = 165, 120
+    P = _swinging_hand(n, n)
+    pivot = np.array([0.2, 0.0, 1.2])
+    speed = np.minimum(np.arange(1, n - seed + 1) / 15.0, 1.0) * 0.12  # [rad / frame], to 6 cm a frame
+    angle = np.deg2rad(12.0) * np.sin((seed - 1) / 15.0) + np.cumsum(speed)
+    P[seed:, 6] = pivot + 0.5 * np.stack([np.cos(angle), np.sin(angle), np.zeros(n - seed)], axis=1)
+    got = run_tracker(P, seed, shuffle_seed=3)
+    assert np.all(got[seed:, 6] == 6)
+    assert np.all(got[seed:, :6] == np.arange(6))
