@@ -14,6 +14,7 @@ import json
 import logging
 import statistics
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -88,6 +89,28 @@ REFINE_EVERY_FRAMES = 240  # ... at most once per this many frames (then twice a
 #: Clouthier KneeltoProne at L3).
 REFINE_MAX_JOINT_SHIFT_M = 0.1
 REFINE_APPLY_S = 1.0  # a refinement started at frame f takes effect this much stream time later (later behind a queue)
+#: A seeded subject whose solves miss its markers by more than this [m] RMS on RECALIBRATE_POOR_FRAMES frames
+#: is calibrated again from its labeled history (`recalibrated_model`); after one that was refused, not
+#: before RECALIBRATE_EVERY_S of stream time (then twice as long, ...). A seed taken with a hand resting on
+#: the hip can put the pelvis's markers on the forearm: the skeleton fits while the hand stays there, and
+#: misses by 0.3-0.5 m once it moves (both players of the two-player tennis file, in some realizations); the
+#: history of the motion since tells the segments apart. (Two-player file, 18 realizations: the worst run's
+#: solve residual p90 549 -> 189 mm at L2, 482 -> 124 mm at L3, the second worst 545 -> 81 and 412 -> 110;
+#: at 20 frames the worst stayed at 290 / 135 mm. Labels: L2 +0.01, L3 -0.03 %.)
+RECALIBRATE_RMS_M = 0.08
+RECALIBRATE_POOR_FRAMES = 10
+RECALIBRATE_EVERY_S = 2.0
+#: ... and the new calibration is taken when its solves of the latest RECALIBRATE_JUDGE_FRAMES labeled frames
+#: miss the markers by under this share of what the current one's do (mean RMS: the frames the current one
+#: misses are the few where the limb moved)
+RECALIBRATE_GAIN = 0.5
+RECALIBRATE_JUDGE_FRAMES = 40
+#: ... unless a bone changes length by more than this [m]: the person is the same, and a history that calls
+#: for it is not one to calibrate from (KneeltoProne, calibrated again from prone frames: bones 8 cm off, and
+#: its fit went from 520-750 to 740-830 mm p90; the tennis players' and the squat's recalibrations changed
+#: no bone by more than 1 and 4 cm)
+RECALIBRATE_MAX_BONE_CHANGE_M = 0.05
+RECALIBRATE_CATCH_UP_SOLVES = 4  # solves of the latest frame from the current pose (then one a frame)
 CALIBRATE_CATCH_UP_SOLVES = 2  # solves that bring a calibration's pose up to the frame it takes effect
 #: A calibration (50-300 ms of work beside the frame loop) started at frame f takes effect this much stream
 #: time later (later behind a queue), counted in the subject's frames. In seconds, not frames: 60 frames,
@@ -131,6 +154,9 @@ class _Subject:
     trial: _Trial | None = None  # a subject just found in a T-pose, until its window ends (`_Trial`)
     mirrors: list | None = None  # a labeled subject's markers its names imply but its seed never showed (`_name_mirrors`)
     mirror_tracks: dict = dataclasses.field(default_factory=dict)  # their candidate points: {name: [last look, track]}
+    poor_fit_frames: int = 0  # frames whose latest fit missed by more than RECALIBRATE_RMS_M, since the last look
+    next_recalibration_frame: int = 0
+    recalibration_interval: int = 0  # frames between recalibrations (doubles each time)
 
 
 @dataclasses.dataclass
@@ -447,12 +473,30 @@ class Engine:
                 return
             s.refine_job = None
             model = _result(future, "refinement")
+            if isinstance(model, tuple):  # a recalibration taken (`recalibrated_model`): the next may follow
+                self._take_recalibration(s, *model)  # as soon as the fit is poor again
+                s.recalibration_interval, s.next_recalibration_frame = 0, 0
+                return
             if model is not None and len(model.markers) == len(s.model.markers):
                 s.model = model
                 last = s.history[-1]
                 tracker._fit(s.model, st, self.solver, last, np.isfinite(last[:, 0]))
             return
-        if not s.model.has_skeleton or st.frames < s.next_refine_frame or not st.fit_rms_m > REFINE_RMS_M:
+        if not s.model.has_skeleton:
+            return
+        s.poor_fit_frames += bool(st.fit_rms_m > RECALIBRATE_RMS_M)
+        if not s.auto and s.poor_fit_frames >= RECALIBRATE_POOR_FRAMES and st.frames >= s.next_recalibration_frame:
+            s.poor_fit_frames = 0
+            s.recalibration_interval = (2 * s.recalibration_interval if s.recalibration_interval
+                                        else self._frames(s, RECALIBRATE_EVERY_S))
+            s.next_recalibration_frame = st.frames + s.recalibration_interval
+            delay = max(self._frames(s, CALIBRATE_APPLY_S), self._queue_frames(s))
+            job = self._worker().submit(recalibrated_model, self._solver_spec, s.model, np.stack(s.history),
+                                        calibration.mirror_index(s.model.markers), st.t_root_m.copy(),
+                                        st.R_parent_segment.copy())
+            s.refine_job = (job, st.frames + delay)
+            return
+        if st.frames < s.next_refine_frame or not st.fit_rms_m > REFINE_RMS_M:
             return
         s.refine_interval = min(2 * s.refine_interval, 20 * REFINE_EVERY_FRAMES) if s.refine_interval else REFINE_EVERY_FRAMES
         s.next_refine_frame = st.frames + s.refine_interval
@@ -460,6 +504,28 @@ class Engine:
         delay = max(self._frames(s, REFINE_APPLY_S), self._queue_frames(s))
         job = self._worker().submit(refined_model, self._solver_spec, s.model, hist, st.t_root_m.copy(), st.R_parent_segment.copy())
         s.refine_job = (job, st.frames + delay)
+
+    def _take_recalibration(self, s: _Subject, model, t_root: np.ndarray, R: np.ndarray) -> None:
+        """Take a recalibration (`recalibrated_model`): its pose is of the frame it was started on, so the
+        latest labels are solved from it and from the current pose, which holds wherever the segments kept
+        their markers, and the better fit stands."""
+        if len(model.markers) != len(s.model.markers):
+            return
+        st, last = s.state, s.history[-1]
+        lab = np.isfinite(last[:, 0])
+        best = None
+        for start in ((st.t_root_m, st.R_parent_segment), (t_root, R)):
+            st.t_root_m, st.R_parent_segment = start
+            fit = None
+            for _ in range(RECALIBRATE_CATCH_UP_SOLVES):
+                fit = tracker._fit(model, st, self.solver, last, lab) or fit
+            if fit is not None and (best is None or fit.residual_rms_m < best[0]):
+                best = (fit.residual_rms_m, st.t_root_m, st.R_parent_segment)
+        if best is None:
+            return
+        s.model = model
+        _, st.t_root_m, st.R_parent_segment = best
+        st.fit_rms_m = best[0]
 
     def _queue_frames(self, s: _Subject) -> int:
         """Frames until a job submitted now for subject s is done, behind the jobs queued before it: the
@@ -831,6 +897,47 @@ def refined_model(solver_spec: tuple, model, hist, t0, R0, n_frames: int = 40, r
     # marker that changed segment here loses its say
     layout = None if layout_rms_m is None else np.where(model.marker_segment == marker_segment0, layout_rms_m, np.nan)
     return dataclasses.replace(model, layout_rms_m=layout)
+
+
+def recalibrated_model(solver_spec: tuple, model, hist: np.ndarray, mirror_of: np.ndarray, t0: np.ndarray,
+                       R0: np.ndarray):
+    """(model, t_world_root_m, R_parent_segment) calibrated anew from labeled history (F, M, 3)
+    (`calibration.calibrate_from_history`), when its solves of the recent history miss the markers by less
+    than RECALIBRATE_GAIN of what `model`'s do (mean RMS); else None. Segments that took each other's
+    markers keep their layouts rigid either way: the joints tell them apart, so the solves judge. The layout
+    check keeps its say only for markers that stayed on their segment (as `refined_model`). Pure, for the
+    helper process; `solver_spec` as `refined_model`'s, (t0, R0) the current pose. None too if a bone would
+    change length by more than RECALIBRATE_MAX_BONE_CHANGE_M."""
+    result = calibration.calibrate_from_history(hist, mirror_of)
+    if result is None:
+        return None
+    seg, off, joints, _, _, _ = result
+    bones = np.abs(np.linalg.norm(joints, axis=1) - np.linalg.norm(model.joint_offsets_m, axis=1))
+    if bones.max() > RECALIBRATE_MAX_BONE_CHANGE_M:
+        return None  # the same person: its history was not one to calibrate from (lying prone)
+    rms = None if model.layout_rms_m is None else np.where(seg == model.marker_segment, model.layout_rms_m, np.nan)
+    new = dataclasses.replace(model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints, layout_rms_m=rms)
+    solver = _solver(solver_spec)
+    good = np.flatnonzero(np.isfinite(hist[..., 0]).sum(1) >= 8)[::-1][:RECALIBRATE_JUDGE_FRAMES]
+    if len(good) < 3:
+        return None
+    judged = []
+    for m in (model, new):  # newest first, from the current pose, each solve warm-started from the last
+        t, R, res = t0, R0, []
+        for n, f in enumerate(good):
+            lab = np.isfinite(hist[f, :, 0])
+            for _ in range(RECALIBRATE_CATCH_UP_SOLVES if n == 0 else 1):
+                fit = solver.fit(t, R, m.joint_offsets_m, m.marker_segment, m.marker_offsets_m, hist[f], lab)
+                if fit.ok and np.isfinite(fit.residual_rms_m):
+                    t, R = fit.t_world_root_m, fit.R_parent_segment
+            res.append(fit.residual_rms_m if fit.ok else np.inf)
+            if n == 0:
+                start = (t, R)
+        judged.append((float(np.mean(res)), start))
+    (old_rms, _), (new_rms, (t, R)) = judged
+    if not new_rms < RECALIBRATE_GAIN * old_rms:
+        return None
+    return new, t, R
 
 
 def _repeats(points: np.ndarray, radius_m: float) -> np.ndarray:
