@@ -95,8 +95,9 @@ REFINE_APPLY_S = 1.0  # a refinement started at frame f takes effect this much s
 #: the hip can put the pelvis's markers on the forearm: the skeleton fits while the hand stays there, and
 #: misses by 0.3-0.5 m once it moves (both players of the two-player tennis file, in some realizations); the
 #: history of the motion since tells the segments apart. (Two-player file, 18 realizations: the worst run's
-#: solve residual p90 549 -> 189 mm at L2, 482 -> 124 mm at L3, the second worst 545 -> 81 and 412 -> 110;
-#: at 20 frames the worst stayed at 290 / 135 mm. Labels: L2 +0.01, L3 -0.03 %.)
+#: solve residual p90 549 -> 189 mm at L2, 482 -> 125 mm at L3, the second worst 545 -> 81 and 412 -> 110;
+#: at 20 frames the worst stayed at 290 / 135 mm. Labels: L2 99.340 -> 99.347 %, L3 97.436 -> 97.477 %, 5
+#: runs up, 1 down. Squat at L3, seeds 0-5: residual p90 531 -> 147 and 578 -> 264 mm, labels up.)
 RECALIBRATE_RMS_M = 0.08
 RECALIBRATE_POOR_FRAMES = 10
 RECALIBRATE_EVERY_S = 2.0
@@ -105,11 +106,14 @@ RECALIBRATE_EVERY_S = 2.0
 #: misses are the few where the limb moved)
 RECALIBRATE_GAIN = 0.5
 RECALIBRATE_JUDGE_FRAMES = 40
-#: ... unless a bone changes length by more than this [m]: the person is the same, and a history that calls
-#: for it is not one to calibrate from (KneeltoProne, calibrated again from prone frames: bones 8 cm off, and
-#: its fit went from 520-750 to 740-830 mm p90; the tennis players' and the squat's recalibrations changed
-#: no bone by more than 1 and 4 cm)
+#: ... unless a bone changes length by more than this [m]: the person is the same (the tennis players' and
+#: the squat's recalibrations changed no bone by more than 1 and 4 cm; KneeltoProne's, from its kneeling
+#: and prone frames, by 4-8 cm)
 RECALIBRATE_MAX_BONE_CHANGE_M = 0.05
+#: ... nor when the subject is not standing now (its latest frame under this tall [m], as `calibration` asks of
+#: an upright person): KneeltoProne, calibrated again from the frames of its going prone, kept no better fit
+#: (520-750 -> 740-830 mm p90) and lost 0.6 % of one run's labels
+RECALIBRATE_MIN_HEIGHT_M = 1.0
 RECALIBRATE_CATCH_UP_SOLVES = 4  # solves of the latest frame from the current pose (then one a frame)
 CALIBRATE_CATCH_UP_SOLVES = 2  # solves that bring a calibration's pose up to the frame it takes effect
 #: A calibration (50-300 ms of work beside the frame loop) started at frame f takes effect this much stream
@@ -508,7 +512,8 @@ class Engine:
     def _take_recalibration(self, s: _Subject, model, t_root: np.ndarray, R: np.ndarray) -> None:
         """Take a recalibration (`recalibrated_model`): its pose is of the frame it was started on, so the
         latest labels are solved from it and from the current pose, which holds wherever the segments kept
-        their markers, and the better fit stands."""
+        their markers, and the better fit stands. Its layouts are trusted as a calibration's are
+        (`tracker.learn_layout_trust`, over the history it was made from)."""
         if len(model.markers) != len(s.model.markers):
             return
         st, last = s.state, s.history[-1]
@@ -524,6 +529,7 @@ class Engine:
         if best is None:
             return
         s.model = model
+        tracker.learn_layout_trust(model, st, np.stack(s.history))
         _, st.t_root_m, st.R_parent_segment = best
         st.fit_rms_m = best[0]
 
@@ -905,18 +911,23 @@ def recalibrated_model(solver_spec: tuple, model, hist: np.ndarray, mirror_of: n
     (`calibration.calibrate_from_history`), when its solves of the recent history miss the markers by less
     than RECALIBRATE_GAIN of what `model`'s do (mean RMS); else None. Segments that took each other's
     markers keep their layouts rigid either way: the joints tell them apart, so the solves judge. The layout
-    check keeps its say only for markers that stayed on their segment (as `refined_model`). Pure, for the
-    helper process; `solver_spec` as `refined_model`'s, (t0, R0) the current pose. None too if a bone would
-    change length by more than RECALIBRATE_MAX_BONE_CHANGE_M."""
+    checks take the new calibration's layouts: the old ones sit in segments the markers left (kept for the
+    markers that stayed, a wrist and finger triad moved off the pelvis went unchecked, and stayed permuted
+    for 227 frames: two players at L3, seed 11). None too if the subject is not standing now
+    (RECALIBRATE_MIN_HEIGHT_M) or a bone would change length by more than RECALIBRATE_MAX_BONE_CHANGE_M.
+    Pure, for the helper process; `solver_spec` as `refined_model`'s, (t0, R0) the current pose."""
+    last = hist[-1][np.isfinite(hist[-1, :, 0])]
+    if len(last) < 8 or np.ptp(last[:, 2]) < RECALIBRATE_MIN_HEIGHT_M:
+        return None  # not standing now: its history since is no calibration's (kneeling to prone)
     result = calibration.calibrate_from_history(hist, mirror_of)
     if result is None:
         return None
-    seg, off, joints, _, _, _ = result
+    seg, off, joints, _, _, layout = result
     bones = np.abs(np.linalg.norm(joints, axis=1) - np.linalg.norm(model.joint_offsets_m, axis=1))
     if bones.max() > RECALIBRATE_MAX_BONE_CHANGE_M:
         return None  # the same person: its history was not one to calibrate from (lying prone)
-    rms = None if model.layout_rms_m is None else np.where(seg == model.marker_segment, model.layout_rms_m, np.nan)
-    new = dataclasses.replace(model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints, layout_rms_m=rms)
+    new = dataclasses.replace(model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints,
+                              layout_offsets_m=off, layout_rms_m=layout)
     solver = _solver(solver_spec)
     good = np.flatnonzero(np.isfinite(hist[..., 0]).sum(1) >= 8)[::-1][:RECALIBRATE_JUDGE_FRAMES]
     if len(good) < 3:

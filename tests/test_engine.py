@@ -902,8 +902,10 @@ def test_a_calibration_that_exchanged_two_segments_markers_is_redone_from_the_hi
     """`recalibrated_model` (run in the helper process when a seeded subject's solves miss by decimetres):
     a calibration that put the pelvis's markers on the right forearm and the forearm's on the pelvis (a hand
     resting on the hip through the seed) keeps each segment's layout rigid, but its joints hold the wrong
-    markers together; calibrated again from 2 s of walking, every one is back on its segment. A
-    calibration that was right is kept (None: the new one does not fit the history twice as well)."""
+    markers together; calibrated again from 2 s of walking, every one is back on its segment, its layout
+    checks on the new layouts. A calibration that was right is kept (None: the new one does not fit the
+    history twice as well), and so is the wrong one while the subject is not standing (its latest frame
+    under a metre tall: a history of going prone is no calibration's)."""
     from protocol.skeleton import SEGMENTS
     from scipy.spatial.transform import Rotation
 
@@ -920,12 +922,16 @@ def test_a_calibration_that_exchanged_two_segments_markers_is_redone_from_the_hi
     seg, off, joints, _, _, _ = calibrate_from_history(hist, twins)  # (the engine's calibrations are its own)
     assert (seg == truth).sum() >= len(truth) - 2  # (the ankle markers, on the joint, may go to the foot)
 
-    def redo(segments):
+    def redo(segments, history=hist):
         model = SubjectModel("P", perf.marker_names, segments, off, joints, True)
-        return recalibrated_model(Engine()._solver_spec, model, hist, twins, perf.root_position_m[-1], R0)
+        return recalibrated_model(Engine()._solver_spec, model, history, twins, perf.root_position_m[-1], R0)
 
     wrong = np.where(seg == pelvis, forearm, np.where(seg == forearm, pelvis, seg))
     got = redo(wrong)
     assert got is not None
     assert (got[0].marker_segment == seg).all()
+    assert np.array_equal(got[0].layout_offsets_m, got[0].marker_offsets_m)
     assert redo(seg) is None
+    lying = hist.copy()
+    lying[-1, :, 2] *= 0.5
+    assert redo(wrong, lying) is None
