@@ -463,7 +463,8 @@ class Engine:
 
     def _maybe_refine(self, s: _Subject) -> None:
         """Re-align the skeleton to the recent labeled history when it fits the markers poorly (the
-        calibration pose hid the joints: a joint shows where it is only when it bends).
+        calibration pose hid the joints: a joint shows where it is only when it bends); calibrate a seeded
+        subject again when it misses them by decimetres (`_maybe_recalibrate`).
 
         The work (0.1-0.5 s) runs in the helper process (`service.worker`), off the frame loop, and its
         result is applied exactly REFINE_APPLY_S of stream time (in frames) after it was started — waiting
@@ -476,7 +477,7 @@ class Engine:
             if st.frames < apply_at:
                 return
             s.refine_job = None
-            model = _result(future, "refinement")
+            model = _result(future, "refinement or recalibration")
             if isinstance(model, tuple):  # a recalibration taken (`recalibrated_model`): the next may follow
                 self._take_recalibration(s, *model)  # as soon as the fit is poor again
                 s.recalibration_interval, s.next_recalibration_frame = 0, 0
@@ -486,19 +487,7 @@ class Engine:
                 last = s.history[-1]
                 tracker._fit(s.model, st, self.solver, last, np.isfinite(last[:, 0]))
             return
-        if not s.model.has_skeleton:
-            return
-        s.poor_fit_frames += bool(st.fit_rms_m > RECALIBRATE_RMS_M)
-        if not s.auto and s.poor_fit_frames >= RECALIBRATE_POOR_FRAMES and st.frames >= s.next_recalibration_frame:
-            s.poor_fit_frames = 0
-            s.recalibration_interval = (2 * s.recalibration_interval if s.recalibration_interval
-                                        else self._frames(s, RECALIBRATE_EVERY_S))
-            s.next_recalibration_frame = st.frames + s.recalibration_interval
-            delay = max(self._frames(s, CALIBRATE_APPLY_S), self._queue_frames(s))
-            job = self._worker().submit(recalibrated_model, self._solver_spec, s.model, np.stack(s.history),
-                                        calibration.mirror_index(s.model.markers), st.t_root_m.copy(),
-                                        st.R_parent_segment.copy())
-            s.refine_job = (job, st.frames + delay)
+        if not s.model.has_skeleton or self._maybe_recalibrate(s):
             return
         if st.frames < s.next_refine_frame or not st.fit_rms_m > REFINE_RMS_M:
             return
@@ -509,6 +498,25 @@ class Engine:
         job = self._worker().submit(refined_model, self._solver_spec, s.model, hist, st.t_root_m.copy(), st.R_parent_segment.copy())
         s.refine_job = (job, st.frames + delay)
 
+    def _maybe_recalibrate(self, s: _Subject) -> bool:
+        """Start a recalibration (`recalibrated_model`, in the helper process, in the refinement's job slot)
+        once a seeded subject's fit has missed by more than RECALIBRATE_RMS_M on RECALIBRATE_POOR_FRAMES
+        frames; True if one was started."""
+        st = s.state
+        s.poor_fit_frames += bool(st.fit_rms_m > RECALIBRATE_RMS_M)
+        if s.auto or s.poor_fit_frames < RECALIBRATE_POOR_FRAMES or st.frames < s.next_recalibration_frame:
+            return False
+        s.poor_fit_frames = 0
+        s.recalibration_interval = (2 * s.recalibration_interval if s.recalibration_interval
+                                    else self._frames(s, RECALIBRATE_EVERY_S))
+        s.next_recalibration_frame = st.frames + s.recalibration_interval
+        delay = max(self._frames(s, CALIBRATE_APPLY_S), self._queue_frames(s))
+        job = self._worker().submit(recalibrated_model, self._solver_spec, s.model, np.stack(s.history),
+                                    calibration.mirror_index(s.model.markers), st.t_root_m.copy(),
+                                    st.R_parent_segment.copy())
+        s.refine_job = (job, st.frames + delay)
+        return True
+
     def _take_recalibration(self, s: _Subject, model, t_root: np.ndarray, R: np.ndarray) -> None:
         """Take a recalibration (`recalibrated_model`): its pose is of the frame it was started on, so the
         latest labels are solved from it and from the current pose, which holds wherever the segments kept
@@ -518,7 +526,7 @@ class Engine:
             return
         st, last = s.state, s.history[-1]
         lab = np.isfinite(last[:, 0])
-        best = None
+        best, kept = None, (st.t_root_m, st.R_parent_segment, st.fit_rms_m)
         for start in ((st.t_root_m, st.R_parent_segment), (t_root, R)):
             st.t_root_m, st.R_parent_segment = start
             fit = None
@@ -526,7 +534,8 @@ class Engine:
                 fit = tracker._fit(model, st, self.solver, last, lab) or fit
             if fit is not None and (best is None or fit.residual_rms_m < best[0]):
                 best = (fit.residual_rms_m, st.t_root_m, st.R_parent_segment)
-        if best is None:
+        if best is None:  # neither start solved: the old calibration stays, and its pose
+            st.t_root_m, st.R_parent_segment, st.fit_rms_m = kept
             return
         s.model = model
         tracker.learn_layout_trust(model, st, np.stack(s.history))
