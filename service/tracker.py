@@ -4,9 +4,10 @@
    acceleration, once labeled three frames running) and matched one-to-one to points with the Hungarian
    method inside a gate that widens with speed x frame time.
 2. Checks: a label its rigid partners disagree with (a swap of two close markers, a ghost caught while the
-   marker hid), by more than their distances to it spread, is withdrawn or swapped back; long-run partner distances repair what rigid checks miss;
-   two labels that each sit where a recent skeleton fit puts the other are swapped back (a mirror-image
-   pair, such as toe and fifth metatarsal, keeps every distance to its partners when crossed).
+   marker hid), by more than their distances to it spread, is withdrawn or swapped back; long-run partner
+   distances repair what rigid checks miss; two labels that each sit where a recent skeleton fit puts the
+   other are swapped back (a mirror-image pair, such as toe and fifth metatarsal, keeps every distance to
+   its partners when crossed).
 3. Re-acquisition: every occluded marker is predicted, from its *rigid partners* when three of them are
    labeled now (Kabsch on the partners' positions when the marker was last seen, i.e. a rigid-body fill;
    the most accurate prediction there is and free of calibration error), else from the fitted skeleton,
