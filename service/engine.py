@@ -14,7 +14,6 @@ import json
 import logging
 import statistics
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
