@@ -886,15 +886,7 @@ def refined_model(solver_spec: tuple, model, hist, t0, R0, n_frames: int = 40, r
     marker_segment0, layout_rms_m, joints0 = model.marker_segment, model.layout_rms_m, model.joint_offsets_m
     frames = hist[pick]
     for _ in range(rounds):
-        # poses of the picked frames, newest first, each solve warm-started from the one after it
-        t, R = t0, R0
-        ts, Rs = np.empty((len(pick), 3)), np.empty((len(pick), 14, 3, 3))
-        for k in range(len(pick) - 1, -1, -1):
-            lab = np.isfinite(frames[k, :, 0])
-            fit = solver.fit(t, R, model.joint_offsets_m, model.marker_segment, model.marker_offsets_m, frames[k], lab)
-            if fit.ok:
-                t, R = fit.t_world_root_m, fit.R_parent_segment
-            ts[k], Rs[k] = t, R
+        ts, Rs, _ = _solve_newest_first(solver, model, frames, t0, R0)
         Rw, pw = calibration.world_transforms(ts, Rs, model.joint_offsets_m)
         seg = calibration.reassign(frames, Rw, pw, model.marker_segment)
         off = model.marker_offsets_m.copy()
@@ -937,26 +929,33 @@ def recalibrated_model(solver_spec: tuple, model, hist: np.ndarray, mirror_of: n
     new = dataclasses.replace(model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints,
                               layout_offsets_m=off, layout_rms_m=layout)
     solver = _solver(solver_spec)
-    good = np.flatnonzero(np.isfinite(hist[..., 0]).sum(1) >= 8)[::-1][:RECALIBRATE_JUDGE_FRAMES]
-    if len(good) < 3:
+    frames = hist[np.flatnonzero(np.isfinite(hist[..., 0]).sum(1) >= 8)[-RECALIBRATE_JUDGE_FRAMES:]]
+    if len(frames) < 3:
         return None
-    judged = []
-    for m in (model, new):  # newest first, from the current pose, each solve warm-started from the last
-        t, R, res = t0, R0, []
-        for n, f in enumerate(good):
-            lab = np.isfinite(hist[f, :, 0])
-            for _ in range(RECALIBRATE_CATCH_UP_SOLVES if n == 0 else 1):
-                fit = solver.fit(t, R, m.joint_offsets_m, m.marker_segment, m.marker_offsets_m, hist[f], lab)
-                if fit.ok and np.isfinite(fit.residual_rms_m):
-                    t, R = fit.t_world_root_m, fit.R_parent_segment
-            res.append(fit.residual_rms_m if fit.ok else np.inf)
-            if n == 0:
-                start = (t, R)
-        judged.append((float(np.mean(res)), start))
-    (old_rms, _), (new_rms, (t, R)) = judged
-    if not new_rms < RECALIBRATE_GAIN * old_rms:
+    old_rms = np.mean(_solve_newest_first(solver, model, frames, t0, R0, RECALIBRATE_CATCH_UP_SOLVES)[2])
+    ts, Rs, res = _solve_newest_first(solver, new, frames, t0, R0, RECALIBRATE_CATCH_UP_SOLVES)
+    if not np.mean(res) < RECALIBRATE_GAIN * old_rms:
         return None
-    return new, t, R
+    return new, ts[-1], Rs[-1]
+
+
+def _solve_newest_first(solver, model, frames: np.ndarray, t0: np.ndarray, R0: np.ndarray, first_solves: int = 1):
+    """Poses (ts (F, 3), Rs (F, 14, 3, 3)) and RMS residuals (F,; inf where the solve failed) of labeled
+    frames (F, M, 3) under `model`: the newest (last) solved first, `first_solves` times from (t0, R0), each
+    earlier one warm-started from the pose of the one after it (a failed solve keeps that pose)."""
+    n = len(frames)
+    ts, Rs, res = np.empty((n, 3)), np.empty((n, 14, 3, 3)), np.full(n, np.inf)
+    t, R = t0, R0
+    for k in range(n - 1, -1, -1):
+        lab = np.isfinite(frames[k, :, 0])
+        for _ in range(first_solves if k == n - 1 else 1):
+            fit = solver.fit(t, R, model.joint_offsets_m, model.marker_segment, model.marker_offsets_m, frames[k], lab)
+            if fit.ok:
+                t, R = fit.t_world_root_m, fit.R_parent_segment
+        ts[k], Rs[k] = t, R
+        if fit.ok:
+            res[k] = fit.residual_rms_m
+    return ts, Rs, res
 
 
 def _repeats(points: np.ndarray, radius_m: float) -> np.ndarray:
