@@ -120,7 +120,8 @@ TRUNK_SEGMENTS = (0, 1, 2, 3)  # indices in protocol.skeleton.SEGMENTS
 LOST_AFTER_GAP_S = 0.25
 SEGMENT_DISTANCE_TOL_M = 0.015  # markers re-found together on an unobserved segment keep the model's distances
 LONE_OWN_M = 0.03  # ... and one alone is taken this close to where the fit puts it ...
-LONE_OTHERS_M = 0.08  # ... and this far from where it puts the segment's other hidden markers
+LONE_OTHERS_M = 0.08  # ... and this far from where it puts the segment's other hidden markers ...
+LONE_MAX_DRIFT_M = 0.1  # ... if it hid slowly enough to coast less than this (speed x time hidden)
 SEARCH_LOST_FRAMES = 3  # a marker unlabeled this many frames on a segment the fit cannot place is searched for
 SEARCH_EVERY_FRAMES = 3  # ... on every 3rd frame, around its segment's joint (`_search_segments`)
 #: ... around a fit at most this many frames old, else it waits a frame for one. At 1.5 (a fit of the last
@@ -564,14 +565,20 @@ def _unswap(point_index: np.ndarray, cur: np.ndarray, pred: np.ndarray, err: np.
 
 
 def _unsure_on_unseen_segment(model: SubjectModel, labeled: np.ndarray, rows: np.ndarray, cur: np.ndarray,
-                              use_skel: np.ndarray, seen: np.ndarray, skel_pred: np.ndarray | None) -> np.ndarray:
+                              use_skel: np.ndarray, seen: np.ndarray, skel_pred: np.ndarray | None,
+                              drift: np.ndarray | None = None) -> np.ndarray:
     """Which re-acquisitions (rows, just assigned at positions cur) to hold back: those the skeleton
     predicted on a segment none of whose markers is labeled. Such a segment's pose is the fit's guess (a
     foot hidden while the leg moved), and one point near it could be any of its markers (`seen`: ever
     seen): its markers are taken only two or more at once, at the distances the model puts between them
     (within SEGMENT_DISTANCE_TOL_M), or one alone where the fit puts it within LONE_OWN_M and every other
     hidden marker of the segment farther than LONE_OTHERS_M (dev suite, seeds 0-2: of the lone points so
-    held back, 520 such were the marker's and 16 not; 1122 and 159 in all)."""
+    held back, 520 such were the marker's and 16 not; 1122 and 159 in all), unless it hid moving: `drift`
+    (M,), its speed as the state carries it (decaying while hidden) times the time hidden, at
+    LONE_MAX_DRIFT_M or more. The fit holds an unseen segment where it was, so a fast limb is elsewhere by
+    then (two players at L3, seed 3: a serving forearm 7 frames hidden, still at 1.4 m/s, predicted 10 cm off its point; the other hand's point lay 2 cm from
+    the prediction, and that arm's labels took the other's points for 240 frames; dev suite, seeds 0-5,
+    L2 and L3: of 193 lone points so taken, that one and 2 right ones moved this far)."""
     hold = np.zeros(len(rows), bool)
     seg = model.marker_segment
     observed = np.zeros(int(seg.max()) + 1, bool)
@@ -586,7 +593,8 @@ def _unsure_on_unseen_segment(model: SubjectModel, labeled: np.ndarray, rows: np
             others = np.flatnonzero((seg == k) & seen & ~labeled)
             others = others[others != i]
             clear = (len(others) > 0 and _norm(cur[i] - skel_pred[i]) < LONE_OWN_M
-                     and _norm(skel_pred[others] - cur[i]).min() > LONE_OTHERS_M)
+                     and _norm(skel_pred[others] - cur[i]).min() > LONE_OTHERS_M
+                     and (drift is None or drift[i] < LONE_MAX_DRIFT_M))
             hold[group] = np.count_nonzero(seen[seg == k]) >= 2 and not clear
             continue
         i = rows[group]
@@ -1824,7 +1832,8 @@ def step(
         cur = _gather(points, point_index)
         wrong = distance_misfit(st, cur, point_index >= 0, rows)[rows] > Z_SUSPECT
         if segment_rule:
-            wrong |= _unsure_on_unseen_segment(model, labeled, rows, cur, use_skel, st.ever_seen, skel_pred)
+            wrong |= _unsure_on_unseen_segment(model, labeled, rows, cur, use_skel, st.ever_seen, skel_pred,
+                                               _norm(st.vel_m_s) * st.hidden_frames * dt)
         point_index[rows[wrong]] = -1
         rows, cols = rows[~wrong], cols[~wrong]
         reacquired[rows] = True

@@ -117,8 +117,8 @@ def test_relocate_finds_a_lost_subject_moved_and_turned():
 def test_markers_of_an_unobserved_segment_are_taken_together_at_the_model_distances():
     """On a segment none of whose markers is labeled, one skeleton-predicted re-acquisition alone is held
     back (it could be any of the segment's markers) unless its point is where the fit puts it and far from
-    where it puts the others; two are taken if their points are as far apart as the model says, and held
-    back if not."""
+    where it puts the others, and it did not hide moving fast; two are taken if their points are as far
+    apart as the model says, and held back if not."""
     seg = np.array([0, 0, 1, 1, 1])
     off = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0, 0], [0.05, 0, 0], [0, 0.08, 0]], float)
     model = tracker.SubjectModel("P", tuple("abcde"), seg, off, np.zeros((14, 3)), True)
@@ -130,8 +130,8 @@ def test_markers_of_an_unobserved_segment_are_taken_together_at_the_model_distan
 
     skel = cur + [0.0, 0.0, 0.02]  # the fit puts each 2 cm from its point: 5 cm from a neighbour's
 
-    def hold(rows, labeled=labeled, seen=seen, skel=skel):
-        return tracker._unsure_on_unseen_segment(model, labeled, np.array(rows), cur, use_skel, seen, skel)
+    def hold(rows, labeled=labeled, seen=seen, skel=skel, drift=None):
+        return tracker._unsure_on_unseen_segment(model, labeled, np.array(rows), cur, use_skel, seen, skel, drift)
 
     assert hold([3]).all()  # alone, 5 cm from where the fit puts marker 2
     far = skel.copy()
@@ -139,6 +139,10 @@ def test_markers_of_an_unobserved_segment_are_taken_together_at_the_model_distan
     assert not hold([3], skel=far).any()  # alone, but where the fit puts it and 10 cm from the others
     far[3] = cur[3] + [0.0, 0.0, 0.04]
     assert hold([3], skel=far).all()  # ... 4 cm from where the fit puts it
+    far[3] = cur[3] + [0.0, 0.0, 0.02]
+    fast = np.where(np.arange(5) == 3, 0.15, 0.0)  # it hid moving: 15 cm coasted (speed x time hidden)
+    assert not hold([3], skel=far, drift=fast / 3).any()  # 5 cm: taken, where the fit puts it
+    assert hold([3], skel=far, drift=fast).all()  # 15 cm: the fit's word on where it is counts for little
     assert not hold([2, 3]).any()  # 5 cm apart, as modelled
     assert hold([2, 4]).all()  # 20 cm apart, 8 cm modelled
     assert not hold([3], seen=np.array([1, 1, 0, 1, 0], bool)).any()  # the segment's only marker ever seen
