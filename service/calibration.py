@@ -33,7 +33,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from protocol.skeleton import PARENTS, SEGMENTS
+from protocol.skeleton import N_SEGMENTS, PARENTS, SEGMENTS
 
 S = {name: i for i, name in enumerate(SEGMENTS)}
 
@@ -175,15 +175,22 @@ def _vote_heading(bf: BodyFrame, positions_m: np.ndarray, votes: list[tuple[np.n
     fwd = bf.R_world_body[:, 0]
     total = np.zeros(3)
     ref_ok = np.isfinite(positions_m[:, 0])
-    for P, facing in votes:
-        common = np.flatnonzero(ref_ok & np.isfinite(P[:, 0]))
-        if len(common) < 8:
-            continue
-        R, t = rigid_motion(P[common], positions_m[common])
-        err = np.linalg.norm(P[common] @ R.T + t - positions_m[common], axis=1)
-        keep = common[err <= np.quantile(err, 0.6)]
-        R, _ = rigid_motion(P[keep], positions_m[keep])
-        total += R @ facing
+    if votes:  # (every frame's two Kabsch solves batched: `_rigid_motions`)
+        P = np.stack([p for p, _ in votes])  # (V, M, 3)
+        facing = np.stack([f for _, f in votes])
+        w = (ref_ok[None] & np.isfinite(P[:, :, 0])).astype(float)
+        use = w.sum(1) >= 8
+        P, facing, w = P[use], facing[use], w[use]
+        ref = np.nan_to_num(positions_m)
+        # from each frame to `positions_m`: b ~ R a + t, here with the frame's points as b (one `a` for all)
+        # and inverted, as R^T takes the frame onto the reference
+        Q = np.where(w[:, :, None] > 0, P, 0.0)
+        R, t = _rigid_motions(ref, Q, w)
+        err = np.linalg.norm(np.einsum("vyx,vmy->vmx", R, Q - t[:, None]) - ref, axis=2)
+        cut = np.nanquantile(np.where(w > 0, err, np.nan), 0.6, axis=1)
+        keep = ((w > 0) & (err <= cut[:, None])).astype(float)
+        R, _ = _rigid_motions(ref, Q, keep)
+        total = np.einsum("vyx,vy->x", R, facing)
     if total @ fwd >= 0:
         return bf
     R = bf.R_world_body * np.array([-1.0, -1.0, 1.0])  # turn 180 degrees about z
@@ -362,9 +369,7 @@ def _by_rigidity(
         st = np.full((m, n_seg), np.nan)
         for k in np.unique(assignment):
             vals = np.where((assignment == k)[None, :] & ~np.eye(m, dtype=bool), sd, np.nan)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # no other member seen with it
-                st[:, k] = np.nanmedian(vals, axis=1)
+            st[:, k] = _nanmedian_columns(vals.T)  # (NaN: no other member seen with it)
         return st
 
     # a marker its segment's other markers left is judged by the segment's first members (a hand hanging by
@@ -535,26 +540,61 @@ def rigid_motion(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R, cb - R @ ca
 
 
+def _rigid_motions(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`rigid_motion` of many frames at once: for each row p, the R (3, 3) and t (3,) taking the points a
+    (K, 3) onto b[p] (K, 3) where w[p] (K,) is 1 (0: not used; those points must be finite, any value).
+    Returns R (P, 3, 3), t (P, 3). One batched SVD instead of a call per frame: calibration makes thousands."""
+    n = w.sum(1)[:, None]
+    ca, cb = (w @ a) / n, np.einsum("pk,pkx->px", w, b) / n
+    H = np.einsum("pk,pkx,pky->pxy", w, a[None] - ca[:, None], b - cb[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
+    d = np.sign(np.linalg.det(V @ Ut))
+    D = np.zeros((len(w), 3, 3))
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = np.where(d == 0, 1.0, d)  # a reflection: flip the least significant axis
+    R = V @ D @ Ut
+    return R, cb - np.einsum("pxy,py->px", R, ca)
+
+
 def layout_residuals(history_m: np.ndarray, marker_segment: np.ndarray, marker_offsets_m: np.ndarray, n_frames: int = 40) -> np.ndarray:
     """How well each marker keeps its offset in its segment over labeled history (F, M, 3): the median,
     over up to n_frames frames, of its distance [m] from where the rigid motion (Kabsch) of its segment's
     markers seen in that frame (3 or more) puts it. NaN where never measured. Skin over a joint, a marker
     given the wrong segment or a hand marker on the forearm read centimetres; markers of one bone, a few
-    millimetres."""
+    millimetres. (Every frame's Kabsch of a segment in one batched SVD: calibration scores ten candidate
+    models this way, and one `rigid_motion` call per frame and segment made it ~40 % of a calibration.)"""
     F, M = history_m.shape[:2]
     pick = np.linspace(0, F - 1, min(n_frames, F)).astype(int) if F else np.zeros(0, int)
+    if not len(pick):
+        return np.full(M, np.nan)
     res = np.full((len(pick), M), np.nan)
-    for r, f in enumerate(pick):
-        seen = np.isfinite(history_m[f, :, 0])
-        for k in np.unique(marker_segment[seen]):
-            idx = np.flatnonzero(seen & (marker_segment == k))
-            if len(idx) < 3:
-                continue
-            R, t = rigid_motion(marker_offsets_m[idx], history_m[f, idx])
-            res[r, idx] = np.linalg.norm(marker_offsets_m[idx] @ R.T + t - history_m[f, idx], axis=1)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # markers never measured: all-NaN columns
-        return np.nanmedian(res, axis=0) if len(pick) else np.full(M, np.nan)
+    frames = history_m[pick]
+    seen = np.isfinite(frames[:, :, 0])
+    for k in np.unique(marker_segment):
+        idx = np.flatnonzero(marker_segment == k)
+        w = seen[:, idx].astype(float)  # (P, K)
+        rows = np.flatnonzero(w.sum(1) >= 3)
+        if len(idx) < 3 or not len(rows):
+            continue
+        w = w[rows]
+        a = marker_offsets_m[idx]  # (K, 3)
+        b = np.where(w[:, :, None] > 0, frames[rows][:, idx], 0.0)  # (P, K, 3)
+        R, t = _rigid_motions(a, b, w)
+        err = np.linalg.norm(np.einsum("pxy,ky->pkx", R, a) + t[:, None] - b, axis=2)
+        res[np.ix_(rows, idx)] = np.where(w > 0, err, np.nan)
+    return _nanmedian_columns(res)
+
+
+def _nanmedian_columns(v: np.ndarray) -> np.ndarray:
+    """np.nanmedian(v, axis=0) of a 2-D array, NaN for all-NaN columns, without its warnings and at a
+    fraction of its cost on small arrays (it goes through masked arrays: ~0.4 ms a call here, and
+    calibration makes hundreds). Hand-written: NaN sorts last, so each column's median is read at its count."""
+    s = np.sort(v, axis=0)
+    n = np.isfinite(v).sum(0)
+    lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[None], 0)[0]
+    hi = np.take_along_axis(s, np.maximum(n // 2, 0)[None], 0)[0]
+    return np.where(n > 0, 0.5 * (lo + hi), np.nan)
 
 
 def fill_reference(history_m: np.ndarray, n_near: int = 5, frame: int | None = None) -> np.ndarray:
@@ -660,20 +700,30 @@ def articulation_error(ref: np.ndarray, history_m: np.ndarray, marker_segment: n
     turn, reads centimetres; NaN if no joint could be checked."""
     _, joints = world_transforms(t_root, R_parent_segment, joint_offsets_m)
     pick = np.linspace(0, len(history_m) - 1, min(n_frames, len(history_m))).astype(int)
-    errors = []
-    for f in pick:
-        P = history_m[f]
-        both = np.isfinite(P[:, 0]) & np.isfinite(ref[:, 0])
-        motion = {}
-        for k in np.unique(marker_segment[both]):
-            idx = np.flatnonzero(both & (marker_segment == k))
-            if len(idx) >= 3:
-                motion[int(k)] = rigid_motion(ref[idx], P[idx])
-        for child, parent in enumerate(PARENTS):
-            if child in motion and parent in motion:
-                (Rc, tc), (Rp, tp) = motion[child], motion[parent]
-                errors.append(np.linalg.norm(Rc @ joints[child] + tc - Rp @ joints[child] - tp))
-    return float(np.median(errors)) if errors else float("nan")
+    frames = history_m[pick]
+    both = np.isfinite(frames[:, :, 0]) & np.isfinite(ref[:, 0])[None]  # (P, M)
+    moved = np.zeros((len(pick), N_SEGMENTS), bool)
+    at = np.zeros((len(pick), N_SEGMENTS, 3))  # where segment k's motion carries its own joint
+    at_parent = np.zeros((len(pick), N_SEGMENTS, 3))  # ... and where its parent's carries it
+    motions = {}
+    for k in np.unique(marker_segment):
+        idx = np.flatnonzero(marker_segment == k)
+        w = both[:, idx].astype(float)
+        rows = np.flatnonzero(w.sum(1) >= 3)
+        if len(rows):
+            w = w[rows]
+            b = np.where(w[:, :, None] > 0, frames[rows][:, idx], 0.0)
+            motions[int(k)] = (rows, *_rigid_motions(np.nan_to_num(ref[idx]), b, w))
+    for k, (rows, R, t) in motions.items():
+        moved[rows, k] = True
+        at[rows, k] = np.einsum("pxy,y->px", R, joints[k]) + t
+        for child in np.flatnonzero(np.asarray(PARENTS) == k):  # the joints of k's children, by k's motion
+            at_parent[rows, child] = np.einsum("pxy,y->px", R, joints[child]) + t
+    parents = np.asarray(PARENTS)
+    has_parent = parents >= 0
+    both_moved = moved & np.where(has_parent, moved[:, np.maximum(parents, 0)], False)
+    errors = np.linalg.norm(at - at_parent, axis=2)[both_moved]
+    return float(np.median(errors)) if len(errors) else float("nan")
 
 
 def is_tpose(P: np.ndarray) -> bool:

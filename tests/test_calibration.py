@@ -11,9 +11,9 @@ import pytest
 from protocol.skeleton import N_SEGMENTS, SEGMENTS
 from recordings.synthetic import multi_perform, perform
 from service.calibration import (
-    S, CalibrationError, _distance_sd, _mirror_pairs, _mirror_segments, _uncross_sides, body_frame, calibrate,
-    calibrate_from_history, clusters, detect_tpose, fill_reference, is_tpose, mirror_index, mirror_name,
-    mirrored_markers,
+    S, CalibrationError, _distance_sd, _mirror_pairs, _mirror_segments, _nanmedian_columns, _rigid_motions,
+    _uncross_sides, body_frame, calibrate, calibrate_from_history, clusters, detect_tpose, fill_reference, is_tpose,
+    mirror_index, mirror_name, mirrored_markers, rigid_motion,
 )
 
 MARKER_SETS = ("cmu41", "gt53")
@@ -539,3 +539,36 @@ def test_a_mirrored_marker_follows_its_named_pairs_where_the_two_feet_turn_and_t
     got = {name: (k, o) for name, k, o in mirrored_markers(markers, seg, off, 0.03)}
     assert sorted(got) == ["LHEE"] and got["LHEE"][0] == lfoot
     np.testing.assert_allclose(got["LHEE"][1], on_left(right["RHEE"]), atol=1e-9)
+
+
+def test_batched_rigid_motions_match_one_kabsch_per_frame_on_the_points_each_frame_uses():
+    """`_rigid_motions` (calibration's batched Kabsch) gives, row by row, what `rigid_motion` gives on the
+    points that row's weights select, whatever the unselected points hold; a mirror image is fitted by
+    a rotation, not a reflection."""
+    rng = np.random.default_rng(7)
+    a = rng.normal(0.0, 0.1, (6, 3))
+    R_true = Rotation.random(5, random_state=3).as_matrix()
+    b = np.einsum("pxy,ky->pkx", R_true, a) + rng.normal(0.0, 0.5, (5, 1, 3)) + rng.normal(0.0, 0.002, (5, 6, 3))
+    w = np.ones((5, 6))
+    w[1, [0, 4]] = 0.0
+    w[3, 2] = 0.0
+    b[1, 0] = b[3, 2] = 1e3  # junk where unused
+    b[2] = a * [1.0, 1.0, -1.0]  # a mirror image
+    R, t = _rigid_motions(a, b, w)
+    for p in range(5):
+        use = w[p] > 0
+        R1, t1 = rigid_motion(a[use], b[p, use])
+        np.testing.assert_allclose(R[p], R1, atol=1e-12)
+        np.testing.assert_allclose(t[p], t1, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(R), 1.0)
+    np.testing.assert_allclose(R[0], R_true[0], atol=0.05)
+
+
+def test_nanmedian_columns_is_numpys_nanmedian():
+    rng = np.random.default_rng(2)
+    v = rng.normal(size=(9, 7))
+    v[rng.random(v.shape) < 0.4] = np.nan
+    v[:, 3] = np.nan
+    with np.errstate(all="ignore"), pytest.warns(RuntimeWarning):
+        want = np.nanmedian(v, axis=0)
+    np.testing.assert_array_equal(_nanmedian_columns(v), want)
