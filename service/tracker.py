@@ -576,9 +576,10 @@ def _unsure_on_unseen_segment(model: SubjectModel, labeled: np.ndarray, rows: np
     held back, 520 such were the marker's and 16 not; 1122 and 159 in all), unless it hid moving: `drift`
     (M,), its speed as the state carries it (decaying while hidden) times the time hidden, at
     LONE_MAX_DRIFT_M or more. The fit holds an unseen segment where it was, so a fast limb is elsewhere by
-    then (two players at L3, seed 3: a serving forearm 7 frames hidden, still at 1.4 m/s, predicted 10 cm off its point; the other hand's point lay 2 cm from
-    the prediction, and that arm's labels took the other's points for 240 frames; dev suite, seeds 0-5,
-    L2 and L3: of 193 lone points so taken, that one and 2 right ones moved this far)."""
+    then (two players at L3, seed 3: a serving forearm 7 frames hidden, still at 1.4 m/s, predicted 10 cm
+    off its point; the other hand's point lay 2 cm from the prediction, and that arm's labels took the
+    other's points for 240 frames; dev suite, seeds 0-5, L2 and L3: of 193 lone points so taken, that one
+    and 2 right ones moved this far)."""
     hold = np.zeros(len(rows), bool)
     seg = model.marker_segment
     observed = np.zeros(int(seg.max()) + 1, bool)
