@@ -115,15 +115,18 @@ RECALIBRATE_MAX_BONE_CHANGE_M = 0.05
 RECALIBRATE_MIN_HEIGHT_M = 1.0
 RECALIBRATE_CATCH_UP_SOLVES = 4  # solves of the latest frame from the current pose (then one a frame)
 CALIBRATE_CATCH_UP_SOLVES = 2  # solves that bring a calibration's pose up to the frame it takes effect
-#: A calibration (50-300 ms of work beside the frame loop) started at frame f takes effect this much stream
+#: A calibration (100-300 ms of work beside the frame loop) started at frame f takes effect this much stream
 #: time later (later behind a queue), counted in the subject's frames. In seconds, not frames: 60 frames,
 #: right at 120 Hz, left a 50 Hz serve without a skeleton for 1.2 s after the seed, and the serving arm's
 #: labels, tracked alone through the serve, came out permuted and stayed so (tennis, two players, at L2).
 CALIBRATE_APPLY_S = 0.5
 #: The time one calibration or refinement takes in the helper process (`_queue_frames`). Measured: a
-#: 41-marker calibration from 240 frames takes 0.31-0.39 s here (cmu/135_02); at 0.3 the frame that took
+#: 41-marker calibration from 240 frames took 0.31-0.39 s here (cmu/135_02); at 0.3 the frame that took
 #: the second and third subjects' calibrations waited for them, 70-250 ms (subject scan p99 for 2 / 3 / 4
-#: subjects 88 / 205 / 248 ms, against 7.5 / 10 / 19 ms at 0.45).
+#: subjects 88 / 205 / 248 ms, against 7.5 / 10 / 19 ms at 0.45). Since calibration batches its Kabsch
+#: solves it takes 0.11-0.15 s (0.8 s in the helper beside a paced frame loop before, which made the
+#: first subject's frame wait 0.1-0.3 s); a smaller value here would let later subjects' calibrations land
+#: sooner (not measured yet).
 HELPER_JOB_S = 0.45
 DISCOVER_FRAMES = 60  # frames an unexplained point must ride on an automatic subject to become a marker
 #: (`_name_mirrors`) a free point this near a named marker's mirror image may be its twin (the tennis
