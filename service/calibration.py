@@ -705,23 +705,20 @@ def articulation_error(ref: np.ndarray, history_m: np.ndarray, marker_segment: n
     moved = np.zeros((len(pick), N_SEGMENTS), bool)
     at = np.zeros((len(pick), N_SEGMENTS, 3))  # where segment k's motion carries its own joint
     at_parent = np.zeros((len(pick), N_SEGMENTS, 3))  # ... and where its parent's carries it
-    motions = {}
-    for k in np.unique(marker_segment):
+    parents = np.asarray(PARENTS)
+    for k in np.unique(marker_segment[marker_segment >= 0]):
         idx = np.flatnonzero(marker_segment == k)
         w = both[:, idx].astype(float)
         rows = np.flatnonzero(w.sum(1) >= 3)
-        if len(rows):
-            w = w[rows]
-            b = np.where(w[:, :, None] > 0, frames[rows][:, idx], 0.0)
-            motions[int(k)] = (rows, *_rigid_motions(np.nan_to_num(ref[idx]), b, w))
-    for k, (rows, R, t) in motions.items():
+        if not len(rows):
+            continue
+        w = w[rows]
+        R, t = _rigid_motions(np.nan_to_num(ref[idx]), np.where(w[:, :, None] > 0, frames[rows][:, idx], 0.0), w)
         moved[rows, k] = True
         at[rows, k] = np.einsum("pxy,y->px", R, joints[k]) + t
-        for child in np.flatnonzero(np.asarray(PARENTS) == k):  # the joints of k's children, by k's motion
+        for child in np.flatnonzero(parents == k):  # the joints of k's children, by k's motion
             at_parent[rows, child] = np.einsum("pxy,y->px", R, joints[child]) + t
-    parents = np.asarray(PARENTS)
-    has_parent = parents >= 0
-    both_moved = moved & np.where(has_parent, moved[:, np.maximum(parents, 0)], False)
+    both_moved = moved & np.where(parents >= 0, moved[:, np.maximum(parents, 0)], False)
     errors = np.linalg.norm(at - at_parent, axis=2)[both_moved]
     return float(np.median(errors)) if len(errors) else float("nan")
 
