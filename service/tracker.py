@@ -449,7 +449,7 @@ def _partner_sigma(st: TrackState, labeled: np.ndarray, rows: np.ndarray) -> np.
     part = st.partners[rows]
     ok = (part >= 0) & labeled[np.maximum(part, 0)]
     sd = np.sqrt(st.dist_var_m2[rows[:, None], np.maximum(part, 0)])
-    w = np.where(ok, 1.0 / (sd + 0.003) ** 2, 0.0)
+    w = np.where(ok, 1.0 / (sd + kernels.SKIN_M) ** 2, 0.0)
     return np.sqrt(np.sum(w * sd**2, axis=1) / np.maximum(np.sum(w, axis=1), 1e-12))
 
 
