@@ -139,6 +139,13 @@ SEARCH_PLACED_INLIER_M = 0.024
 #: subject was lost) is looked for by its own layout, as a free rigid body whose joint lies this close to
 #: its bone's length from the grandparent joint (`_search_free_segment`).
 SEARCH_BONE_TOL_M = 0.05
+#: ... and a placement of three markers alone is taken only if no other placement about as good fits
+#: within this times the search's tolerances
+RIVAL_TOL_FACTOR = 2.0
+#: ... and if its three markers fit their layout within this RMS. Logged against the truth (dev files at
+#: L3, 18 seeds each): with the rival rule alone, 64 placements taken right and 4 wrong, the wrong ones at
+#: 5.1-6.7 mm and 18 right ones beyond; with both rules, on all 8 files, 59 right and 1 wrong (4.8 mm)
+SEARCH_THREE_RMS_M = 0.005
 #: With no skeleton (`_search_rigid_groups`), markers whose mutual distances varied less than GROUP_SD_M
 #: move as one cluster; its triangle is matched to points at its distances within GROUP_PAIR_TOL_M + 3
 #: sigma, its markers are placed on points within GROUP_INLIER_M, and it is taken when GROUP_MIN_PLACED
@@ -720,11 +727,8 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
             assignment = _unambiguous(scored, 0, max(len(idx) - len(lab), 1))
         if assignment is None and len(lab) == 0:
             # the joint could not pin it (its parent moved unseen too, so the joint is where the fit left
-            # it: a serving arm's forearm stayed unfound for 0.7 s): its layout alone. No joint to pin it:
-            # a rival placing one marker fewer makes it ambiguous too, and three markers alone are only the
-            # triangle matched (a foot's three were once matched to two of them and the shank's marker:
-            # HDM05 at L3, T-pose mode)
-            assignment = _unambiguous(_search_free_segment(model, pw, points, pool, los, k, observed), 1, 4)
+            # it: a serving arm's forearm stayed unfound for 0.7 s): its layout alone
+            assignment = _search_free_segment(model, pw, points, pool, los, k, observed)
         if assignment and _rival_fits(model, pw, points, assignment, k, searched):
             assignment = None
         if assignment:
@@ -911,24 +915,33 @@ def _triangle_matches(A: np.ndarray, P: np.ndarray, tol_m: tuple) -> list:
 
 
 def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray, pool: np.ndarray,
-                         los: np.ndarray, k: int, observed: np.ndarray) -> list:
-    """Hypotheses (n placed, RMS, {marker: point}) for segment k, none of whose markers `los` is labeled,
-    when its joint cannot anchor the search (its parent moved unseen too): its markers' layout is matched
-    as a free rigid body. Three of its markers (the widest triangle) are matched to unclaimed points at
-    the same mutual distances, within reach of the grandparent joint (the shoulder for a forearm, held by
-    the trunk); the rigid motion must put the segment's joint at its bone's length from there; it then
-    places the other markers. When the grandparent moved unseen too, the anchor is the first joint up the
-    chain that an observed segment holds, and the joint must lie within the chain's length of it (a foot
-    whose shank and thigh, one marker each, hid while the subject walked on hangs from the hip: 85_12 at
-    L3, where the stale knee and ankle were 40-65 cm off and the foot stayed unlabeled). Only markers that
-    keep their layout on the segment take part, and only on segments with four of them or more (one
-    beyond the triangle to confirm it)."""
+                         los: np.ndarray, k: int, observed: np.ndarray) -> dict[int, int] | None:
+    """{marker: point} for segment k, none of whose markers `los` is labeled, when its joint cannot anchor
+    the search (its parent moved unseen too), or None: its markers' layout is matched as a free rigid
+    body. Three of its markers are matched to unclaimed points at the same mutual distances, within reach
+    of the grandparent joint (the shoulder for a forearm, held by the trunk); the rigid motion must put
+    the segment's joint at its bone's length from there; it then places the other markers. When the
+    grandparent moved unseen too, the anchor is the first joint up the chain that an observed segment
+    holds, and the joint must lie within the chain's length of it (a foot whose shank and thigh, one
+    marker each, hid while the subject walked on hangs from the hip: 85_12 at L3, where the stale knee and
+    ankle were 40-65 cm off and the foot stayed unlabeled). Only markers that keep their layout on the
+    segment take part.
+
+    What is taken: from the widest triangle, the hypothesis placing most markers, four or more, if no other
+    places as many less one about as well (`_unambiguous`: no joint pins it, so a rival one marker short
+    counts too). Failing that, where one bone pins the joint, three markers: every triangle of the lost
+    markers is tried (a serving forearm's wrist pair and finger were in view for 0.5 s while its fourth
+    marker hid with the upper arm, and stayed unlabeled: tennis at L3), and the best is taken if it fits
+    within SEARCH_THREE_RMS_M and no other placement fits about as well within RIVAL_TOL_FACTOR times the
+    tolerances. Three markers are a triangle, which fits its mirror image (the other hand's) by a turn:
+    only the bone's length tells the two apart, and a chain's reach is too loose for that (a foot's three
+    were once matched to two of them and the shank's marker: HDM05 at L3, T-pose mode)."""
     parent = PARENTS[k]
     if model.layout_rms_m is None or len(model.layout_rms_m) != model.n_markers or model.layout_offsets_m is None:
-        return []  # layouts unmeasured (a calibration saved before they were kept)
+        return None  # layouts unmeasured (a calibration saved before they were kept)
     los = los[model.layout_rms_m[los] < SHAPE_LAYOUT_TOL_M]  # a marker that slides (a finger) misplaces it
-    if parent < 0 or len(los) < 4:
-        return []
+    if parent < 0 or len(los) < 3:
+        return None
     # the calibrated layout, not the offsets refinements on the engine's own labels may have moved (a foot
     # marker refined while labeled on a neighbour's point left the foot unfound, cmu/85_12 at L3)
     off = model.layout_offsets_m
@@ -936,26 +949,53 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
     while PARENTS[top] >= 0 and not observed[top] and not observed[PARENTS[top]]:
         bones.append(_norm(model.joint_offsets_m[top]))
         top = PARENTS[top]
+    one_bone = len(bones) == 1
+    if not one_bone and len(los) < 4:
+        return None
     anchor, reach = pw[top], sum(bones)
     near = pool[_norm(points[pool] - anchor) < reach + _norm(off[los]).max() + SEARCH_JOINT_TOL_M]
     if len(near) < 3:
-        return []
+        return None
 
     def area(c):
         return _norm(np.cross(off[c[1]] - off[c[0]], off[c[2]] - off[c[0]]))
 
-    A = off[list(max(itertools.combinations(los, 3), key=area))]
-    scored = []
-    for R, t, res in _triangle_matches(A, points[near], (SEARCH_PAIR_TOL_M,) * 3):
-        d = _norm(t - anchor)  # one bone: at its length; a chain: within its reach
-        off_bone = abs(d - reach) if len(bones) == 1 else d - reach
-        if res.max() > 2 * SEARCH_INLIER_M or off_bone > SEARCH_BONE_TOL_M:
-            continue
-        assignment = _placed(off, los, R, t, points, near)
-        if len(set(assignment.values())) < len(assignment):
-            continue
-        scored.append((len(assignment), float(np.sqrt(np.mean(res**2))), assignment))
-    return scored
+    triangles = sorted(itertools.combinations(los, 3), key=area, reverse=True)
+
+    def placements(tris, tol: float) -> list:
+        """(n placed, RMS of the triangle's fit, {marker: point}), most placed first, from the triangles
+        `tris` matched within `tol` times the search's tolerances (side lengths, corner residuals, the joint
+        off its bone's length)."""
+        scored, seen = [], set()
+        for tri in tris:
+            for R, t, res in _triangle_matches(off[list(tri)], points[near], (tol * SEARCH_PAIR_TOL_M,) * 3):
+                d = _norm(t - anchor)  # one bone: at its length; a chain: within its reach
+                if res.max() > tol * 2 * SEARCH_INLIER_M or (abs(d - reach) if one_bone else d - reach) > tol * SEARCH_BONE_TOL_M:
+                    continue
+                assignment = _placed(off, los, R, t, points, near)
+                key = tuple(sorted(assignment.items()))
+                if len(set(assignment.values())) < len(assignment) or key in seen:
+                    continue  # (another triangle of the same placement)
+                seen.add(key)
+                scored.append((len(assignment), float(np.sqrt(np.mean(res**2))), assignment))
+        return sorted(scored, key=lambda x: (-x[0], x[1]))
+
+    scored = placements(triangles[:1], 1.0) if len(los) >= 4 else []  # the widest, and a fourth marker
+    if scored and scored[0][0] >= 4:
+        return _unambiguous(scored, 1, 4)
+    if not one_bone:
+        return None
+    scored = placements(triangles, 1.0)
+    if not scored or scored[0][0] != 3 or scored[0][1] > SEARCH_THREE_RMS_M:
+        return None
+    assignment = scored[0][2]
+    # three: a rival is any other placement about as good within RIVAL_TOL_FACTOR times the tolerances (a
+    # foot's ankle, fifth metatarsal and toe are nearly isosceles: with ankle and toe swapped they fitted
+    # the search's tolerances, the true labels, 13 mm off in two sides, did not, and the swap was taken:
+    # cmu/135_02 at L3, the foot wrong for 500 frames)
+    if any(a2 != assignment and r2 < 1.5 * scored[0][1] + 0.003 for _, r2, a2 in placements(triangles, RIVAL_TOL_FACTOR)):
+        return None
+    return assignment
 
 
 @functools.lru_cache(maxsize=None)

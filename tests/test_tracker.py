@@ -261,6 +261,42 @@ def test_a_forearm_whose_upper_arm_swung_too_is_found_by_its_layout():
     assert tracker._search_segments(model, st, far, far_free, labeled, cur, arm) == {}
 
 
+def test_three_markers_of_a_forearm_whose_upper_arm_swung_too_are_found_where_one_bone_pins_them():
+    """The whole arm swung unseen, and the forearm's fourth marker hid with the upper arm: its other three
+    (a serving forearm's wrist pair and finger, in view for 0.5 s in tennis at L3) are a triangle matched
+    to the points, taken because the elbow it places lies at the upper arm's length from the shoulder.
+    Not when the same triangle turned about the shoulder is free too (the bone cannot tell the two
+    apart), and not when the trunk is unlabeled as well (the chain's reach is too loose for a triangle)."""
+    from protocol.skeleton import SEGMENTS
+
+    rng = np.random.default_rng(4)
+    turns = {"r_upperarm": ("x", 70), "r_forearm": ("y", 60)}
+    perf, model, st, old, now, _ = _turned_unseen(rng, turns, measured_layouts=True)
+    arm = np.isin(perf.marker_segment, [SEGMENTS.index(name) for name in turns])
+    forearm = np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
+    assert len(forearm) == 4
+    shoulder = tracker._joints_m(model, st)[SEGMENTS.index("r_upperarm")]
+    hidden = forearm[np.argmin(np.linalg.norm(now[forearm] - shoulder, axis=1))]  # the one nearest the elbow
+    shown = np.setdiff1d(forearm, [hidden])
+    labeled = ~arm
+    cur = np.where(labeled[:, None], now, np.nan)
+    points = now.copy()
+    points[hidden] = [9.0, 9.0, 9.0]  # out of reach: hidden
+    free = arm.copy()
+
+    found = tracker._search_segments(model, st, points, free, labeled, cur, arm)
+    assert {i: p for i, p in found.items() if i in forearm} == {int(i): int(i) for i in shown}
+    # the same three turned 40 degrees about the shoulder: their elbow at the bone's length too
+    turn = Rotation.from_rotvec([0.0, 0.0, np.radians(40)]).as_matrix()
+    twin = (now[shown] - shoulder) @ turn.T + shoulder
+    both = np.concatenate([points, twin])
+    found = tracker._search_segments(model, st, both, np.concatenate([free, np.ones(3, bool)]), labeled, cur, arm)
+    assert not any(i in forearm for i in found)
+    trunk_too = labeled & (perf.marker_segment != SEGMENTS.index("torso"))
+    found = tracker._search_segments(model, st, points, free, trunk_too, np.where(trunk_too[:, None], now, np.nan), arm)
+    assert not any(i in forearm for i in found)
+
+
 def test_an_upper_arm_of_two_markers_in_view_is_found_with_its_forearm_around_the_elbow_it_places():
     """The whole arm swung while unlabeled, and one of the upper arm's three markers is hidden: the two
     left and the shoulder (held by the trunk) cannot tell the upper arm's placement from its mirror image,
