@@ -139,12 +139,13 @@ SEARCH_PLACED_INLIER_M = 0.024
 #: subject was lost) is looked for by its own layout, as a free rigid body whose joint lies this close to
 #: its bone's length from the grandparent joint (`_search_free_segment`).
 SEARCH_BONE_TOL_M = 0.05
-#: ... and a placement of three markers alone is taken only if no other placement about as good fits
-#: within this times the search's tolerances
+#: ... and, when no triangle with a fourth marker places it, by its triangles one by one: the best placement
+#: is taken if no disagreeing one fits about as well within this times the search's tolerances ...
 RIVAL_TOL_FACTOR = 2.0
-#: ... and if its three markers fit their layout within this RMS. Logged against the truth (dev files at
-#: L3, 18 seeds each): with the rival rule alone, 64 placements taken right and 4 wrong, the wrong ones at
-#: 5.1-6.7 mm and 18 right ones beyond; with both rules, on all 8 files, 59 right and 1 wrong (4.8 mm)
+#: ... and if its triangle fits their layout within this RMS. Logged against the truth (dev files at L3,
+#: 18 seeds each): with the rival rule alone, 64 placements of three taken right and 4 wrong, the wrong ones
+#: at 5.1-6.7 mm and 18 right ones beyond. With this RMS and `_consensus`, on all 8 files: 78 placements
+#: taken (50 of three markers, 28 of four or five), 263 labels, 1 wrong; 30 held back as ambiguous
 SEARCH_THREE_RMS_M = 0.005
 #: With no skeleton (`_search_rigid_groups`), markers whose mutual distances varied less than GROUP_SD_M
 #: move as one cluster; its triangle is matched to points at its distances within GROUP_PAIR_TOL_M + 3
@@ -929,13 +930,14 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
 
     What is taken: from the widest triangle, the hypothesis placing most markers, four or more, if no other
     places as many less one about as well (`_unambiguous`: no joint pins it, so a rival one marker short
-    counts too). Failing that, where one bone pins the joint, three markers: every triangle of the lost
-    markers is tried (a serving forearm's wrist pair and finger were in view for 0.5 s while its fourth
-    marker hid with the upper arm, and stayed unlabeled: tennis at L3), and the best is taken if it fits
-    within SEARCH_THREE_RMS_M and no other placement fits about as well within RIVAL_TOL_FACTOR times the
-    tolerances. Three markers are a triangle, which fits its mirror image (the other hand's) by a turn:
-    only the bone's length tells the two apart, and a chain's reach is too loose for that (a foot's three
-    were once matched to two of them and the shank's marker: HDM05 at L3, T-pose mode)."""
+    counts too). Failing that, where one bone pins the joint, every triangle of the lost markers is tried
+    (a serving forearm's wrist pair and finger were in view for 0.5 s while its fourth marker hid with the
+    upper arm, and stayed unlabeled: tennis at L3): the best placement, if its triangle fits within
+    SEARCH_THREE_RMS_M, merged with every placement agreeing with it (`_consensus`), unless a disagreeing
+    one fits about as well with half its support or more. Three markers are a triangle, which fits its
+    mirror image (the other hand's) by a turn: only the bone's length tells the two apart, and a chain's
+    reach is too loose for that (a foot's three were once matched to two of them and the shank's marker:
+    HDM05 at L3, T-pose mode)."""
     parent = PARENTS[k]
     if model.layout_rms_m is None or len(model.layout_rms_m) != model.n_markers or model.layout_offsets_m is None:
         return None  # layouts unmeasured (a calibration saved before they were kept)
@@ -986,16 +988,39 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
     if not one_bone:
         return None
     scored = placements(triangles, 1.0)
-    if not scored or scored[0][0] != 3 or scored[0][1] > SEARCH_THREE_RMS_M:
+    if not scored or scored[0][1] > SEARCH_THREE_RMS_M:
         return None
-    assignment = scored[0][2]
-    # three: a rival is any other placement about as good within RIVAL_TOL_FACTOR times the tolerances (a
-    # foot's ankle, fifth metatarsal and toe are nearly isosceles: with ankle and toe swapped they fitted
-    # the search's tolerances, the true labels, 13 mm off in two sides, did not, and the swap was taken:
-    # cmu/135_02 at L3, the foot wrong for 500 frames)
-    if any(a2 != assignment and r2 < 1.5 * scored[0][1] + 0.003 for _, r2, a2 in placements(triangles, RIVAL_TOL_FACTOR)):
-        return None
+    # Each triangle placed alone: the placement is the best one's consensus, every placement agreeing with
+    # it merged in (a forearm of five markers twisting under pronation fits no rigid layout within the
+    # inlier gate, but four of its triangles each placed three of them, consistently: two players at L3,
+    # the left forearm unlabeled 100 frames in view). A rival is a placement disagreeing with it about as
+    # good, within RIVAL_TOL_FACTOR times the tolerances (a foot's ankle, fifth metatarsal and toe are
+    # nearly isosceles: with ankle and toe swapped they fitted the search's tolerances, the true labels, 13
+    # mm off in two sides, did not, and the swap was taken: cmu/135_02 at L3, the foot wrong for 500
+    # frames); it makes the placement ambiguous unless its own consensus has less than half the support.
+    loose = placements(triangles, RIVAL_TOL_FACTOR)
+    assignment, support = _consensus(scored[0][2], loose)
+    for _, r2, a2 in loose:
+        if r2 < 1.5 * scored[0][1] + 0.003 and not _agrees(assignment, a2) and 2 * _consensus(a2, loose)[1] >= support:
+            return None
     return assignment
+
+
+def _agrees(a: dict[int, int], b: dict[int, int]) -> bool:
+    """Whether two {marker: point} placements agree: no marker on two points, no point for two markers."""
+    taken = {p: i for i, p in a.items()}
+    return all(a.get(i, p) == p and taken.get(p, i) == i for i, p in b.items())
+
+
+def _consensus(seed: dict[int, int], placements: list) -> tuple[dict[int, int], int]:
+    """`seed` merged with every placement (n, RMS, {marker: point}) agreeing with it so far, best first,
+    and how many placements it merged (the seed's own counted)."""
+    merged, support = dict(seed), 0
+    for _, _, a in placements:
+        if _agrees(merged, a):
+            merged.update(a)
+            support += 1
+    return merged, max(support, 1)
 
 
 @functools.lru_cache(maxsize=None)

@@ -297,6 +297,40 @@ def test_three_markers_of_a_forearm_whose_upper_arm_swung_too_are_found_where_on
     assert not any(i in forearm for i in found)
 
 
+def test_a_forearm_fitting_no_rigid_layout_is_found_by_the_triangles_that_agree():
+    """The arm swung unseen and the forearm twisted out of its layout: one marker sits 20 mm off where the
+    other three put it (a five-marker forearm under pronation: two players at L3, the left forearm
+    unlabeled 100 frames in view). No triangle places all four, but several place three, and they agree:
+    all four are found. (Two placements that disagree, each alone: the three-marker test's twin.)"""
+    from protocol.skeleton import SEGMENTS
+
+    rng = np.random.default_rng(4)
+    turns = {"r_upperarm": ("x", 70), "r_forearm": ("y", 60)}
+    perf, model, st, old, now, _ = _turned_unseen(rng, turns, measured_layouts=True)
+    arm = np.isin(perf.marker_segment, [SEGMENTS.index(name) for name in turns])
+    forearm = np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
+    a, b, c, d = now[forearm]
+    normal = np.cross(b - a, c - a)
+    points = now.copy()
+    points[forearm[3]] = d + 0.02 * normal / np.linalg.norm(normal)  # off the plane: sides barely change
+    labeled = ~arm
+    cur = np.where(labeled[:, None], now, np.nan)
+
+    found = tracker._search_segments(model, st, points, arm.copy(), labeled, cur, arm)
+    assert {i: p for i, p in found.items() if i in forearm} == {int(i): int(i) for i in forearm}
+
+
+def test_placements_agree_unless_a_marker_or_a_point_is_given_twice():
+    assert tracker._agrees({1: 10, 2: 20}, {2: 20, 3: 30})
+    assert not tracker._agrees({1: 10, 2: 20}, {2: 30})  # marker 2 on two points
+    assert not tracker._agrees({1: 10, 2: 20}, {3: 20})  # point 20 for two markers
+    merged, support = tracker._consensus({1: 10, 2: 20, 3: 30}, [(3, 0.001, {1: 10, 2: 20, 3: 30}),
+                                                                 (3, 0.002, {2: 20, 3: 30, 4: 40}),
+                                                                 (3, 0.002, {2: 30, 3: 20, 4: 40}),
+                                                                 (3, 0.003, {1: 10, 4: 40, 5: 50})])
+    assert merged == {1: 10, 2: 20, 3: 30, 4: 40, 5: 50} and support == 3
+
+
 def test_an_upper_arm_of_two_markers_in_view_is_found_with_its_forearm_around_the_elbow_it_places():
     """The whole arm swung while unlabeled, and one of the upper arm's three markers is hidden: the two
     left and the shoulder (held by the trunk) cannot tell the upper arm's placement from its mirror image,
