@@ -979,7 +979,8 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
                 if len(set(assignment.values())) < len(assignment) or key in seen:
                     continue  # (another triangle of the same placement)
                 seen.add(key)
-                scored.append((len(assignment), float(np.sqrt(np.mean(res**2))), assignment))
+                if len(assignment) >= 3:  # (its own corners at least: one may miss the inlier gate)
+                    scored.append((len(assignment), float(np.sqrt(np.mean(res**2))), assignment))
         return sorted(scored, key=lambda x: (-x[0], x[1]))
 
     scored = placements(triangles[:1], 1.0) if len(los) >= 4 else []  # the widest, and a fourth marker
@@ -1020,7 +1021,7 @@ def _consensus(seed: dict[int, int], placements: list) -> tuple[dict[int, int], 
         if _agrees(merged, a):
             merged.update(a)
             support += 1
-    return merged, max(support, 1)
+    return merged, max(support, 1)  # (the seed is among them when it came from the same search)
 
 
 @functools.lru_cache(maxsize=None)
