@@ -977,6 +977,45 @@ def test_two_labels_tied_with_their_swap_take_the_least_change_unless_a_stale_po
     assert (idx == want).all() and set(np.flatnonzero(changed)) == {heel, toe}
 
 
+@pytest.mark.parametrize("toes", ["curled", "level"])
+def test_a_foots_label_is_handed_over_only_where_that_fits_its_layout(toes):
+    """A foot's heel label and its toe label, just re-acquired, on their own points, the fifth metatarsal
+    hidden, and the toes curled under (the toe marker turned 90 degrees about the metatarsal heads): the
+    heel and toe points are 6 cm closer than in the layout, 2.6 cm farther than the heel and the fifth
+    metatarsal. Handing the toe label's point to the metatarsal fits the layout's distance twice as well as
+    the labels do, 13 mm against 30, but not as right labels fit it: the labels are left be
+    (BENDING_SEGMENTS; 135_02 at L2, a toe label's point so handed to the metatarsal for 1-1.7 s). The toe
+    label re-acquired on the metatarsal's point of a level foot fits it exactly once handed over, and is."""
+    perf, model, R, points, _ = _right_foot([-0.07, 0.0, -0.04], [0.18, 0.02, -0.045], [0.09, -0.04, -0.045])
+    m = len(perf.marker_names)
+    heel, toe, mt5 = (perf.marker_names.index(n) for n in ("RHEE", "RTOE", "RMT5"))
+    assert model.marker_segment[heel] in tracker.BENDING_SEGMENTS
+    assert set(np.flatnonzero(model.marker_segment == model.marker_segment[heel])) == {heel, toe, mt5}
+    idx = np.arange(m)
+    idx[mt5] = -1
+    points = points.copy()
+    if toes == "curled":
+        mtp = points[heel] + (points[toe] - points[heel]) * 0.7  # the metatarsal heads, 7.5 cm behind the toe marker
+        side = np.cross([0.0, 0.0, 1.0], points[toe] - points[heel])
+        points[toe] = mtp + Rotation.from_rotvec(np.radians(90) * side / np.linalg.norm(side)).apply(points[toe] - mtp)
+        fits = tracker._kabsch_rms(model.layout_offsets_m[[[heel, toe], [heel, mt5]]],
+                                   np.broadcast_to(points[[heel, toe]], (2, 2, 3)), np.ones((2, 2), bool))
+        assert 0.025 < fits[0] and tracker.SHAPE_MIN_RMS_M < fits[1] < tracker.SHAPE_GAIN * fits[0]
+        want = idx.copy()
+    else:
+        idx[toe] = mt5  # the toe label on the metatarsal's point; the toe's point out of view
+        want = idx.copy()
+        want[toe], want[mt5] = -1, mt5
+    st = tracker.new_state(model, points, t_ns(0))
+    st.t_root_m, st.R_parent_segment = perf.root_position_m[0], R
+    st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
+    st.provisional[toe] = tracker.PROBATION_FRAMES  # just re-acquired
+    st.pos_m[[mt5, toe]] = points[[mt5, toe]]  # where they were last seen: nothing blocked
+    for _ in range(tracker.SHAPE_CONFIRM + 1):
+        _checked(lambda i, cur: tracker._relabel_by_shape(model, st, points, i, cur), points, idx)
+    assert (idx == want).all()
+
+
 def test_a_wrist_label_on_the_waist_markers_point_is_reseated_where_its_forearm_puts_it():
     """A hand resting on the hip: the wrist marker's label on the waist marker's point and the waist's on
     the wrist's, 4 cm apart. No permutation within either segment undoes it, but the forearm's other labels
