@@ -1590,7 +1590,9 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     fits = rms0 <= tol
     if not given:  # (given labels: `observe` settles them all)
         whole = np.bincount(seg[slots], minlength=int(seg.max()) + 1)[ks] == n_lab
-        st.settled |= np.isin(seg, ks[fits & whole & (n_lab >= SETTLED_MIN_LABELS)]) & labeled & slots
+        confirmed = np.zeros(N_SEGMENTS, bool)  # (a lookup: np.isin cost ~90 us here, a tenth of the check)
+        confirmed[ks[fits & whole & (n_lab >= SETTLED_MIN_LABELS)]] = True
+        st.settled |= confirmed[seg] & labeled & slots
     if given:
         _count_layout_fits(st, ks, fits)
         return changed
