@@ -239,8 +239,8 @@ JOINT_MIN_MISFIT_M = 0.015
 TWISTING_SEGMENTS = (SEGMENTS.index("l_forearm"), SEGMENTS.index("r_forearm"))
 #: Segments that bend at their far end: a foot's toe marker sits on the toes, which bend at the metatarsal
 #: heads (kneeling, on tiptoe), and the rigid layout does not follow them: 135_02's right toe marker came
-#: 5.5 cm nearer the heel for seconds, misfitting its layout by 28 mm, while its distance to the heel
-#: matched the heel's to the fifth metatarsal to 12 mm. Handing the toe label's point to the metatarsal
+#: 5.5 cm nearer the heel for seconds: heel and toe labels misfit the layout by 28 mm RMS, and as heel
+#: and fifth metatarsal they fit it at 12 mm. Handing the toe label's point to the metatarsal
 #: then fit "better" than the true labels and was taken, for 1-1.7 s each time. On these a relabelling that
 #: hands a label to an unlabeled marker must leave the labels fitting the layout as right labels do (the
 #: tolerance a check counts as fitting; `_relabel_by_shape`). (Dev suite, 18 realizations: 135_02 at L2
@@ -1590,9 +1590,9 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     fits = rms0 <= tol
     if not given:  # (given labels: `observe` settles them all)
         whole = np.bincount(seg[slots], minlength=int(seg.max()) + 1)[ks] == n_lab
-        confirmed = np.zeros(N_SEGMENTS, bool)  # (a lookup: np.isin cost ~90 us here, a tenth of the check)
+        confirmed = np.zeros(N_SEGMENTS, bool)  # (a lookup: np.isin cost 70-90 us here, a tenth of the check)
         confirmed[ks[fits & whole & (n_lab >= SETTLED_MIN_LABELS)]] = True
-        st.settled |= confirmed[seg] & labeled & slots
+        st.settled |= confirmed[seg] & labeled & slots  # (slots: assigned markers only, no segment -1)
     if given:
         _count_layout_fits(st, ks, fits)
         return changed
