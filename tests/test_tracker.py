@@ -261,6 +261,17 @@ def test_a_forearm_whose_upper_arm_swung_too_is_found_by_its_layout():
     assert tracker._search_segments(model, st, far, far_free, labeled, cur, arm) == {}
 
 
+def _arm_swung_unseen():
+    """A synthetic performer whose right upper arm and forearm turned 70 and 60 degrees while unlabeled,
+    its layouts measured: (perf, model, st, the points now, the arm's markers (mask), the forearm's)."""
+    from protocol.skeleton import SEGMENTS
+
+    turns = {"r_upperarm": ("x", 70), "r_forearm": ("y", 60)}
+    perf, model, st, _, now, _ = _turned_unseen(np.random.default_rng(4), turns, measured_layouts=True)
+    arm = np.isin(perf.marker_segment, [SEGMENTS.index(name) for name in turns])
+    return perf, model, st, now, arm, np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
+
+
 def test_three_markers_of_a_forearm_whose_upper_arm_swung_too_are_found_where_one_bone_pins_them():
     """The whole arm swung unseen, and the forearm's fourth marker hid with the upper arm: its other three
     (a serving forearm's wrist pair and finger, in view for 0.5 s in tennis at L3) are a triangle matched
@@ -269,11 +280,7 @@ def test_three_markers_of_a_forearm_whose_upper_arm_swung_too_are_found_where_on
     apart), and not when the trunk is unlabeled as well (the chain's reach is too loose for a triangle)."""
     from protocol.skeleton import SEGMENTS
 
-    rng = np.random.default_rng(4)
-    turns = {"r_upperarm": ("x", 70), "r_forearm": ("y", 60)}
-    perf, model, st, old, now, _ = _turned_unseen(rng, turns, measured_layouts=True)
-    arm = np.isin(perf.marker_segment, [SEGMENTS.index(name) for name in turns])
-    forearm = np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
+    perf, model, st, now, arm, forearm = _arm_swung_unseen()
     assert len(forearm) == 4
     shoulder = tracker._joints_m(model, st)[SEGMENTS.index("r_upperarm")]
     hidden = forearm[np.argmin(np.linalg.norm(now[forearm] - shoulder, axis=1))]  # the one nearest the elbow
@@ -302,13 +309,7 @@ def test_a_forearm_fitting_no_rigid_layout_is_found_by_the_triangles_that_agree(
     other three put it (a five-marker forearm under pronation: two players at L3, the left forearm
     unlabeled 100 frames in view). No triangle places all four, but several place three, and they agree:
     all four are found. (Two placements that disagree, each alone: the three-marker test's twin.)"""
-    from protocol.skeleton import SEGMENTS
-
-    rng = np.random.default_rng(4)
-    turns = {"r_upperarm": ("x", 70), "r_forearm": ("y", 60)}
-    perf, model, st, old, now, _ = _turned_unseen(rng, turns, measured_layouts=True)
-    arm = np.isin(perf.marker_segment, [SEGMENTS.index(name) for name in turns])
-    forearm = np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
+    perf, model, st, now, arm, forearm = _arm_swung_unseen()
     a, b, c, d = now[forearm]
     normal = np.cross(b - a, c - a)
     points = now.copy()
