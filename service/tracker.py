@@ -300,6 +300,29 @@ class SubjectModel:
     def n_markers(self) -> int:
         return len(self.markers)
 
+    @functools.cached_property
+    def layout_joints_m(self) -> np.ndarray:
+        """(N_SEGMENTS, 3) where each segment's joint, as the model has it now, lies in its calibrated layout
+        (zeros without a measured layout). Refinement moves the joints and the offsets, keeping the
+        segments' rotations, but not the layout: the searches and checks that hang a layout from a joint
+        hang it here, not at the layout's own origin (the joint as calibrated). There, a serving forearm
+        whose elbow refinement had moved 66 mm had its joint 5.5 cm off the upper arm's length from the
+        shoulder, and stayed unlabeled in view for 45 frames (two players at L2). The rigid motion taking
+        the model's offsets onto the layout places it: refinement reshapes a segment a little too (a head's
+        back markers moved 5 cm more than its front ones, 85_12), and the mean shift of its markers
+        then put a head's joint where its mirror image fitted better."""
+        out = np.zeros((N_SEGMENTS, 3))
+        if self.layout_rms_m is None or len(self.layout_rms_m) != self.n_markers:
+            return out
+        measured = (self.layout_rms_m < SHAPE_LAYOUT_TOL_M) & (self.marker_segment >= 0)
+        for k in np.unique(self.marker_segment[measured]):
+            rows = measured & (self.marker_segment == k)
+            if rows.sum() >= 3:
+                out[k] = rigid_motion(self.marker_offsets_m[rows], self.layout_offsets_m[rows])[1]
+            else:  # (two markers: no rotation to take out)
+                out[k] = np.mean(self.layout_offsets_m[rows] - self.marker_offsets_m[rows], axis=0)
+        return out
+
 
 @dataclasses.dataclass
 class TrackState:
@@ -967,6 +990,7 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
     if not one_bone and len(los) < 4:
         return None
     anchor, reach = pw[top], sum(bones)
+    joint = model.layout_joints_m[k]  # (where the layout is placed, the model's joint: see layout_joints_m)
     near = pool[_norm(points[pool] - anchor) < reach + _norm(off[los]).max() + SEARCH_JOINT_TOL_M]
     if len(near) < 3:
         return None
@@ -983,7 +1007,7 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
         scored, seen = [], set()
         for tri in tris:
             for R, t, res in _triangle_matches(off[list(tri)], points[near], (tol * SEARCH_PAIR_TOL_M,) * 3):
-                d = _norm(t - anchor)  # one bone: at its length; a chain: within its reach
+                d = _norm(R @ joint + t - anchor)  # one bone: at its length; a chain: within its reach
                 if res.max() > tol * 2 * SEARCH_INLIER_M or (abs(d - reach) if one_bone else d - reach) > tol * SEARCH_BONE_TOL_M:
                     continue
                 assignment = _placed(off, los, R, t, points, near)
@@ -1503,7 +1527,8 @@ def _joint_fits(model: SubjectModel, st: TrackState, k: int, lab: np.ndarray, sl
     if st.skel_pred_m is None:
         return np.full(len(rows), np.inf)
     joint = _joints_m(model, st)[k]
-    A = np.concatenate([model.layout_offsets_m[slot[maps[rows]]], np.zeros((len(rows), 1, 3))], axis=1)
+    A = np.concatenate([model.layout_offsets_m[slot[maps[rows]]],
+                        np.broadcast_to(model.layout_joints_m[k], (len(rows), 1, 3))], axis=1)
     B = np.broadcast_to(np.vstack([cur[lab], joint[None]]), A.shape)
     return _kabsch_rms(A, B, np.ones(A.shape[:2], bool))
 

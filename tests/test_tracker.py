@@ -261,6 +261,49 @@ def test_a_forearm_whose_upper_arm_swung_too_is_found_by_its_layout():
     assert tracker._search_segments(model, st, far, far_free, labeled, cur, arm) == {}
 
 
+def test_a_forearm_found_by_its_layout_is_hung_from_the_elbow_refinement_moved():
+    """Refinement moved the elbow (here 6 cm: the calibration's was off, the motion placed it) and the
+    forearm's offsets with it, but keeps the calibrated layout, whose origin stays where the calibration
+    put the elbow. The search places the layout and asks where the model's elbow is in it
+    (`SubjectModel.layout_joints_m`), so the arm swung unseen is found. (At the layout's own origin, the
+    elbow lay 6 cm off the upper arm's length from the shoulder: a serving forearm whose elbow refinement
+    had moved 66 mm stayed unlabeled in view for 45 frames, two players at L2.)"""
+    from protocol.skeleton import SEGMENTS
+
+    perf, model, st, now, arm, forearm = _arm_swung_unseen()
+    shoulder = tracker._joints_m(model, st)[SEGMENTS.index("r_upperarm")]
+    R, elbow = tracker.rigid_motion(model.marker_offsets_m[forearm], now[forearm])  # the forearm's pose now
+    up_the_arm = (shoulder - elbow) / np.linalg.norm(shoulder - elbow)
+    layout = model.layout_offsets_m.copy()
+    layout[forearm] -= 0.06 * R.T @ up_the_arm  # the calibration's elbow, 6 cm nearer the shoulder
+    calibrated = dataclasses.replace(model, layout_offsets_m=layout)
+    np.testing.assert_allclose(calibrated.layout_joints_m[SEGMENTS.index("r_forearm")],
+                               -0.06 * R.T @ up_the_arm, atol=1e-12)
+    labeled = ~arm
+    cur = np.where(labeled[:, None], now, np.nan)
+
+    found = tracker._search_segments(calibrated, st, now, arm.copy(), labeled, cur, arm)
+    assert {i: p for i, p in found.items() if i in forearm} == {int(i): int(i) for i in forearm}
+
+
+def test_the_models_joint_in_a_layout_refinement_reshaped_is_where_the_rigid_motion_between_them_puts_it():
+    """Refinement reshapes a segment a little as it moves its joint: the layout is the offsets turned 10
+    degrees about their centre and shifted by c, so the joint (the offsets' origin) lies where that motion
+    puts it, not at the mean shift of the markers. No layout measured: zeros."""
+    rng = np.random.default_rng(7)
+    offsets = rng.uniform(-0.05, 0.05, (4, 3)) + [0.0, 0.0, -0.15]
+    turn = Rotation.from_rotvec([0.0, np.radians(10), 0.0]).as_matrix()
+    c = np.array([0.01, -0.03, 0.05])
+    layout = (offsets - offsets.mean(0)) @ turn.T + offsets.mean(0) + c
+    model = tracker.SubjectModel("P", ("a", "b", "c", "d"), np.full(4, 6), offsets, np.zeros((14, 3)), True,
+                                 layout_offsets_m=layout, layout_rms_m=np.full(4, 0.002))
+    expected = offsets.mean(0) + c - turn @ offsets.mean(0)
+    np.testing.assert_allclose(model.layout_joints_m[6], expected, atol=1e-9)
+    assert np.linalg.norm(np.mean(layout - offsets, axis=0) - expected) > 0.02  # (the mean shift is not it)
+    assert not np.delete(model.layout_joints_m, 6, axis=0).any()
+    assert not dataclasses.replace(model, layout_rms_m=None).layout_joints_m.any()
+
+
 def _arm_swung_unseen():
     """A synthetic performer whose right upper arm and forearm turned 70 and 60 degrees while unlabeled,
     its layouts measured: (perf, model, st, the points now, the arm's markers (mask), the forearm's)."""
