@@ -286,6 +286,29 @@ def test_a_forearm_found_by_its_layout_is_hung_from_the_elbow_refinement_moved()
     assert {i: p for i, p in found.items() if i in forearm} == {int(i): int(i) for i in forearm}
 
 
+@pytest.mark.parametrize("raised_m, found", [(0.065, True), (0.12, False)])
+def test_a_forearm_found_by_its_layout_may_hang_from_a_shoulder_the_shoulder_blade_raised(raised_m, found):
+    """The arm swung unseen and the shoulder blade carried it 6.5 cm up along itself (an arm raised to
+    serve); the upper arm's markers are labeled again, the forearm's not. The fit holds the shoulder where
+    the trunk puts it and the elbow where it was, so the elbow the forearm's layout places lies 6.5 cm
+    beyond the upper arm's length from that shoulder, and is taken (SEARCH_BONE_TOL_M; two players at L3,
+    a serving forearm unlabeled in view for 0.4 s); 12 cm beyond, it is no arm of this shoulder's."""
+    from protocol.skeleton import SEGMENTS
+
+    perf, model, st, now, arm, forearm = _arm_swung_unseen()
+    shoulder = tracker._joints_m(model, st)[SEGMENTS.index("r_upperarm")]
+    _, elbow = tracker.rigid_motion(model.marker_offsets_m[forearm], now[forearm])
+    along = (elbow - shoulder) / np.linalg.norm(elbow - shoulder)
+    points = now.copy()
+    points[arm] += raised_m * along
+    lost = np.zeros(len(points), bool)
+    lost[forearm] = True
+    cur = np.where(~lost[:, None], points, np.nan)
+
+    got = tracker._search_segments(model, st, points, lost.copy(), ~lost, cur, lost)
+    assert got == ({int(i): int(i) for i in forearm} if found else {})
+
+
 def test_the_models_joint_in_a_layout_refinement_reshaped_is_where_the_rigid_motion_between_them_puts_it():
     """Refinement reshapes a segment a little as it moves its joint: the layout is the offsets turned 10
     degrees about their centre and shifted by c, so the joint (the offsets' origin) lies where that motion
