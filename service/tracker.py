@@ -1003,7 +1003,8 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
         return None
     anchor, reach = pw[top], sum(bones)
     joint = model.layout_joints_m[k]  # (where the layout is placed, the model's joint: see layout_joints_m)
-    near = pool[_norm(points[pool] - anchor) < reach + SEARCH_BONE_TOL_M + _norm(off[los]).max()]  # (joint, marker)
+    # (the joint lies within its bone's tolerance of the reach, and each marker within its offset of the joint)
+    near = pool[_norm(points[pool] - anchor) < reach + SEARCH_BONE_TOL_M + _norm(off[los]).max()]
     if len(near) < 3:
         return None
 
@@ -1549,9 +1550,9 @@ def _overwhelming_handovers(st: TrackState, lab: np.ndarray, slot: np.ndarray, m
     for c in np.flatnonzero(out):
         out[c] = _norm(where[lab] - where[slot[maps[c]]]).max() <= SHAPE_MAX_HANDOVER_M
     if out.any():
-        open_ = ~blocked
-        open_[0] = False  # (the identity)
-        if (rms[open_] < 2.0 * rms[out].min() + 0.001).any():
+        others = ~blocked
+        others[0] = False  # (the identity)
+        if (rms[others] < 2.0 * rms[out].min() + 0.001).any():
             out[:] = False
     return out
 
@@ -1683,7 +1684,8 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
         # stayed permuted for 8 s); a label handed to an unlabeled marker, whose place is only known from
         # where it was last, less far (SHAPE_MAX_HANDOVER_M: at 0.3 m a thigh marker calibrated onto a
         # hanging forearm was handed to the finger marker, 85_12 at L3), and only from a re-acquisition
-        # still on probation (a marker tracked all along is not suspected of sitting on another's point).
+        # still on probation (a marker tracked all along is not suspected of sitting on another's point,
+        # short of overwhelming evidence: `_overwhelming_handovers`).
         rms, blocked = kernels.relabel_candidates(layout, cur, where, st.provisional, lab, slot, maps,
                                                   SHAPE_MAX_HANDOVER_M, SHAPE_MAX_JUMP_M)
         if len(lab) >= SHAPE_CLEAR_MIN_LABELS and rms0[r] >= SHAPE_SETTLED_HANDOVER_MISFIT_M:
