@@ -1542,3 +1542,45 @@ def test_a_fast_hand_held_only_by_loose_partners_keeps_its_tracked_label():
     got = run_tracker(P, seed, shuffle_seed=3)
     assert np.all(got[seed:, 6] == 6)
     assert np.all(got[seed:, :6] == np.arange(6))
+
+
+def test_a_label_the_layout_check_takes_off_a_neighbours_point_is_found_where_its_partners_put_it_before(monkeypatch):
+    """A wrist label re-acquired, then carried onto the finger marker's point while on probation (the finger
+    marker hidden; a serving arm's partners too loose for probation to tell): its partners' snapshot is
+    retaken there every frame. The layout check hands the point to the finger marker; the wrist marker,
+    back in view, is placed by the snapshot from before its re-acquisition, not by the one taken on the
+    finger's point, 8-10 cm from it and beyond its gate (two players at L2: a serving wrist unlabeled in
+    view for 30 frames)."""
+    monkeypatch.setattr(tracker, "Z_SUSPECT", np.inf)
+    perf = perform(3, duration_s=2.0)
+    P = perf.recording.points_m
+    m, seed = len(perf.marker_names), 120
+    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
+                                 perf.joint_offsets_m, True, layout_offsets_m=perf.marker_offsets_m,
+                                 layout_rms_m=np.full(m, 0.002))
+    st = tracker.new_state(model, P[0], t_ns(0), P[:1])
+    for f in range(1, seed):
+        st, _ = tracker.observe(model, st, P[f], t_ns(f), CONFIG)
+    st.shape_fit[:], st.shape_checks[:] = 1.0, 10  # layouts that have been fitting
+    wrist, finger = perf.marker_names.index("RWRA"), perf.marker_names.index("RFIN")
+    assert np.linalg.norm(P[seed:, wrist] - P[seed:, finger], axis=1).min() > 2 * CONFIG.reacquire_gate_m
+    shown = np.ones(m, bool)
+    for f in range(seed, len(P)):
+        shown[:] = True
+        if f < seed + 6:
+            shown[wrist] = False  # hidden ...
+        elif f == seed + 8:
+            st.pos_m[wrist] = P[f - 1, finger]  # ... re-acquired, then carried onto the finger's point
+            st.vel_m_s[wrist] = (P[f - 1, finger] - P[f - 2, finger]) * RATE_HZ
+        if seed + 8 <= f < seed + 30:
+            shown[wrist] = False
+        if seed <= f < seed + 8:
+            shown[finger] = False
+        seen = np.flatnonzero(shown)
+        st, res = tracker.step(model, st, P[f, seen], np.ones(len(seen), bool), t_ns(f), CONFIG)
+        got = np.where(res.point_index >= 0, seen[np.maximum(res.point_index, 0)], -1)
+        if f == seed + 6:
+            assert got[wrist] == wrist and st.provisional[wrist] > 0
+        if f == seed + 10:
+            assert got[wrist] == finger  # the wrong label
+    assert got[wrist] == wrist and got[finger] == finger
