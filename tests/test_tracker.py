@@ -205,6 +205,28 @@ def test_a_lost_marker_is_found_where_three_labeled_markers_of_its_segment_put_i
     assert tracker._search_segments(model, st, points, free, labeled, cur, lost) == want
 
 
+
+@pytest.mark.parametrize("upper_arm_deg", [0.0, 20.0])
+def test_a_lost_marker_three_labeled_markers_of_its_segment_place_is_found_wherever_the_fit_left_the_joint(upper_arm_deg):
+    """A forearm's three other markers labeled, its fourth unlabeled in view where they put it, and the fit
+    (a serving arm, 35-45 mm RMS) holding the elbow 10 cm off: the three place it without the joint (its
+    distance from the joint would rule its point out: a serving wrist marker stayed unlabeled in view for
+    20 frames, two players at L2)."""
+    from protocol.skeleton import SEGMENTS
+    from service.calibration import world_transforms
+
+    perf, model, st, old, _, _ = _turned_unseen(np.random.default_rng(5), {})
+    forearm = np.flatnonzero(perf.marker_segment == SEGMENTS.index("r_forearm"))
+    lost_one, k = forearm[1], SEGMENTS.index("r_forearm")
+    _, before = world_transforms(st.t_root_m, st.R_parent_segment, perf.joint_offsets_m)
+    upper = SEGMENTS.index("r_upperarm")
+    st.R_parent_segment[upper] = Rotation.from_euler("x", upper_arm_deg, degrees=True).as_matrix() @ st.R_parent_segment[upper]
+    _, after = world_transforms(st.t_root_m, st.R_parent_segment, perf.joint_offsets_m)
+    assert np.linalg.norm(after[k] - before[k]) > (0.08 if upper_arm_deg else -1.0)
+    labeled = np.arange(len(old)) != lost_one
+    cur = np.where(labeled[:, None], old, np.nan)
+    assert tracker._search_segments(model, st, old, ~labeled, labeled, cur, ~labeled) == {int(lost_one): int(lost_one)}
+
 def test_a_segment_the_fit_lost_is_found_around_its_joint():
     """A forearm turned 80 degrees at the elbow while its markers went unlabeled: the fit (which had no
     word on it) still holds it where it was, its wrist 12 cm from its markers. Registered around the
