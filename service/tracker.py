@@ -828,16 +828,16 @@ def _around_joint(model: SubjectModel, o: np.ndarray, lab: np.ndarray, los: np.n
         mk = np.array([i for i, _ in h])
         pt = np.array([p for _, p in h])
         A, B = np.vstack([base_a, off[mk]]), np.vstack([base_b, points[pt]])
-        free = len(lab) >= 3 and len(h) == 1  # (placed by three labeled markers, above)
-        R, t = rigid_motion(A[1:], B[1:]) if free else rigid_motion(A, B)
+        pinned = len(lab) >= 3 and len(h) == 1  # (placed by three labeled markers, above: no joint)
+        R, t = rigid_motion(A[1:], B[1:]) if pinned else rigid_motion(A, B)
         res = _norm(A @ R.T + t - B)
-        if (not free and res.max() > 2 * tol_m) or res[1:].max() > 2 * SEARCH_INLIER_M:
+        if (not pinned and res.max() > 2 * tol_m) or res[1:].max() > 2 * SEARCH_INLIER_M:
             continue
-        assignment = _placed(off, los, R, t, points, pool if free else near)
+        assignment = _placed(off, los, R, t, points, pool if pinned else near)
         assignment.update({int(i): int(p) for i, p in h})
         if len(set(assignment.values())) < len(assignment):
             continue
-        rms = float(np.sqrt(np.mean(res[1:] ** 2 if free else res**2)))
+        rms = float(np.sqrt(np.mean(res[1:] ** 2 if pinned else res**2)))
         if refine and len(assignment) >= 3:
             # the joint is only roughly where the parent's placement put it: the markers placed, alone, place
             # the segment again
