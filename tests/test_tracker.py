@@ -205,7 +205,6 @@ def test_a_lost_marker_is_found_where_three_labeled_markers_of_its_segment_put_i
     assert tracker._search_segments(model, st, points, free, labeled, cur, lost) == want
 
 
-
 @pytest.mark.parametrize("upper_arm_deg", [0.0, 20.0])
 def test_a_lost_marker_three_labeled_markers_of_its_segment_place_is_found_wherever_the_fit_left_the_joint(upper_arm_deg):
     """A forearm's three other markers labeled, its fourth unlabeled in view where they put it, and the fit
@@ -226,6 +225,7 @@ def test_a_lost_marker_three_labeled_markers_of_its_segment_place_is_found_where
     labeled = np.arange(len(old)) != lost_one
     cur = np.where(labeled[:, None], old, np.nan)
     assert tracker._search_segments(model, st, old, ~labeled, labeled, cur, ~labeled) == {int(lost_one): int(lost_one)}
+
 
 def test_a_segment_the_fit_lost_is_found_around_its_joint():
     """A forearm turned 80 degrees at the elbow while its markers went unlabeled: the fit (which had no
