@@ -1175,24 +1175,42 @@ def _kabsch_rms(A: np.ndarray, B: np.ndarray, w: np.ndarray) -> np.ndarray:
 def _layout_fits(model: SubjectModel, cur: np.ndarray, sel: np.ndarray, ks: np.ndarray):
     """Segments ks's markers `sel` (M,) (all on a segment) registered onto their layout in one batch:
     (members, sorted by segment; the index in ks of each one's segment; how many each segment has; each
-    segment's RMS misfit [m]; each segment's markers' own layout residual, RMS [m]). The segments' markers
-    are padded rows of one array, built with array operations: a list of per-segment lookups cost more
-    than the registration itself."""
+    segment's RMS misfit [m]; each segment's markers' own layout residual, RMS [m])."""
     seg = model.marker_segment
     wanted = np.zeros(N_SEGMENTS, bool)
     wanted[ks] = True
     members = np.flatnonzero(sel & wanted[seg])
     members = members[np.argsort(seg[members], kind="stable")]
     row = np.searchsorted(ks, seg[members])
-    n_lab = np.bincount(row, minlength=len(ks))
+    return (members, row) + _registered_rows(model, members, cur[members], row, len(ks))
+
+
+def _registered_rows(model: SubjectModel, members: np.ndarray, at_m: np.ndarray, row: np.ndarray, n_rows: int):
+    """Markers `members` seen at `at_m`, grouped in rows (`row`, ascending), each row registered onto their
+    layout: (how many markers each row has, its RMS misfit [m], its markers' own layout residual, RMS
+    [m]). The rows are padded rows of one array, built with array operations: a list of per-row lookups
+    cost more than the registration itself."""
+    n_lab = np.bincount(row, minlength=n_rows)
     col = np.arange(len(members)) - np.concatenate([[0], np.cumsum(n_lab)[:-1]])[row]
     width = int(n_lab.max())
-    A = np.zeros((len(ks), width, 3))
-    B = np.zeros((len(ks), width, 3))
-    w = np.zeros((len(ks), width), bool)
-    A[row, col], B[row, col], w[row, col] = model.layout_offsets_m[members], cur[members], True
-    typical = np.sqrt(np.bincount(row, model.layout_rms_m[members] ** 2, minlength=len(ks)) / n_lab)
-    return members, row, n_lab, _kabsch_rms(A, B, w), typical
+    A = np.zeros((n_rows, width, 3))
+    B = np.zeros((n_rows, width, 3))
+    w = np.zeros((n_rows, width), bool)
+    A[row, col], B[row, col], w[row, col] = model.layout_offsets_m[members], at_m, True
+    typical = np.sqrt(np.bincount(row, model.layout_rms_m[members] ** 2, minlength=n_rows) / n_lab)
+    return n_lab, _kabsch_rms(A, B, w), typical
+
+
+def _fit_tolerance(n_lab: np.ndarray, typical: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(whether a relabelling of each segment could be taken on clear evidence, the RMS [m] within which
+    its labels fit its layout). A segment fits when its labels sit about as well as they did in
+    calibration: a few times its markers' own layout residual (1-2 mm on a foot), and never worse than
+    SHAPE_MIN_RMS_M. A fixed 12 mm let a toe label on the fifth metatarsal's point pass (10 mm, 85_12 at
+    L2) for 1.6 s. (Only where a relabelling could then be taken on clear evidence: checking the others
+    costs time.)"""
+    can_clear = (n_lab >= SHAPE_CLEAR_MIN_LABELS) & (typical <= SHAPE_CLEAR_HANDOVER_LAYOUT_M)
+    tol = np.where(can_clear, np.minimum(SHAPE_MIN_RMS_M, np.maximum(SHAPE_FIT_FLOOR_M, SHAPE_FIT_FACTOR * typical)), SHAPE_MIN_RMS_M)
+    return can_clear, tol
 
 
 def _layout_slots(model: SubjectModel, st: TrackState) -> np.ndarray | None:
@@ -1616,20 +1634,43 @@ def learn_layout_trust(model: SubjectModel, st: TrackState, history_m: np.ndarra
     """Count how often each segment's labels fit its new layout over the labeled frames (F, M, 3) it was
     calibrated from (every SHAPE_EVERY_FRAMES-th), as the checks of `_relabel_by_shape` would have: a
     calibration that lands after a seed (at 50 Hz, 2 s of labels are 100 frames) would otherwise start with
-    no layout trusted. `observe` counts each given frame it checks the same way."""
-    idx = np.arange(model.n_markers)
-    for frame in history_m[::SHAPE_EVERY_FRAMES]:
-        labeled = np.isfinite(frame[:, 0])
-        _relabel_by_shape(model, st, frame, np.where(labeled, idx, -1), frame, given=True)
+    no layout trusted. `observe` counts each given frame it checks the same way.
+
+    Every frame's segments are registered in one batch, then folded in frame order: one frame at a time
+    (~80 us each), the 60 frames of a 240-frame history held up the frame that took a calibration by 4-8
+    ms, the largest part of a subject scan's p99 (three subjects' calibrations taken 0.45 s apart)."""
+    slots = _layout_slots(model, st)
+    if slots is None:
+        return
+    frames = history_m[::SHAPE_EVERY_FRAMES]
+    seg = np.maximum(model.marker_segment, 0)  # (slots exclude segment -1)
+    f_of, members = np.nonzero(np.isfinite(frames[:, :, 0]) & slots)  # (frame-major, markers ascending)
+    counts = np.zeros((len(frames), N_SEGMENTS), int)
+    np.add.at(counts, (f_of, seg[members]), 1)
+    checked = counts >= SHAPE_MIN_LABELED
+    fr, ks = np.nonzero(checked)  # the rows: each frame's checked segments, ascending
+    if len(fr) == 0:
+        return
+    on = checked[f_of, seg[members]]
+    f_of, members = f_of[on], members[on]
+    key = f_of * N_SEGMENTS + seg[members]
+    order = np.argsort(key, kind="stable")  # (a segment's markers stay ascending, as `_layout_fits` has them)
+    f_of, members, key = f_of[order], members[order], key[order]
+    row = np.searchsorted(fr * N_SEGMENTS + ks, key)
+    n_lab, rms, typical = _registered_rows(model, members, frames[f_of, members], row, len(fr))
+    fits = rms <= _fit_tolerance(n_lab, typical)[1]
+    bounds = np.flatnonzero(np.diff(fr)) + 1
+    for rows in np.split(np.arange(len(fr)), bounds):
+        _count_layout_fits(st, ks[rows], fits[rows])
 
 
-def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, point_index: np.ndarray, cur: np.ndarray,
-                      given: bool = False) -> np.ndarray:
+def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, point_index: np.ndarray,
+                      cur: np.ndarray) -> np.ndarray:
     """Permute the labels within a segment when its calibrated marker layout says they are permuted.
-    In place; returns the markers whose point changed. With `given` labels (`observe`), only count how
-    often each segment's labels fit its layout: a layout trusted by the end of a seed can undo a swap
-    right after it (a tennis player's wrist labels swapped in the serve, 0.4 s after the seed, and stayed
-    swapped for 40 frames while the forearm's layout earned its trust).
+    In place; returns the markers whose point changed. (Given labels, `observe`, only count how often
+    each segment's labels fit its layout, `learn_layout_trust`: a layout trusted by the end of a seed can
+    undo a swap right after it; a tennis player's wrist labels swapped in the serve, 0.4 s after the
+    seed, and stayed swapped for 40 frames while the layout earned its trust.)
 
     Markers of one segment keep their offsets; a wrist-and-finger triad or a foot's markers permuted by a
     fast pass or a re-acquisition after occlusion keep being tracked permuted, and the long-run partner
@@ -1652,22 +1693,13 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
     if len(ks) == 0:
         return changed
     members, row, n_lab, rms0, typical = _layout_fits(model, cur, labeled & slots, ks)
-    # a segment fits when its labels sit about as well as they did in calibration: a few times its markers'
-    # own layout residual (1-2 mm on a foot), and never worse than SHAPE_MIN_RMS_M. A fixed 12 mm let a toe
-    # label on the fifth metatarsal's point pass (10 mm, 85_12 at L2) for 1.6 s.
-    # (only where a relabelling could then be taken on clear evidence, below: checking the others costs time)
-    can_clear = (n_lab >= SHAPE_CLEAR_MIN_LABELS) & (typical <= SHAPE_CLEAR_HANDOVER_LAYOUT_M)
+    can_clear, tol = _fit_tolerance(n_lab, typical)
     tight = typical <= SHAPE_CLEAR_LAYOUT_M
-    tol = np.where(can_clear, np.minimum(SHAPE_MIN_RMS_M, np.maximum(SHAPE_FIT_FLOOR_M, SHAPE_FIT_FACTOR * typical)), SHAPE_MIN_RMS_M)
     fits = rms0 <= tol
-    if not given:  # (given labels: `observe` settles them all)
-        whole = np.bincount(seg[slots], minlength=int(seg.max()) + 1)[ks] == n_lab
-        confirmed = np.zeros(N_SEGMENTS, bool)  # (a lookup: np.isin cost 70-90 us here, a tenth of the check)
-        confirmed[ks[fits & whole & (n_lab >= SETTLED_MIN_LABELS)]] = True
-        st.settled |= confirmed[seg] & labeled & slots  # (slots: assigned markers only, no segment -1)
-    if given:
-        _count_layout_fits(st, ks, fits)
-        return changed
+    whole = np.bincount(seg[slots], minlength=int(seg.max()) + 1)[ks] == n_lab
+    confirmed = np.zeros(N_SEGMENTS, bool)  # (a lookup: np.isin cost 70-90 us here, a tenth of the check)
+    confirmed[ks[fits & whole & (n_lab >= SETTLED_MIN_LABELS)]] = True
+    st.settled |= confirmed[seg] & labeled & slots  # (slots: assigned markers only, no segment -1)
     if st.shape_votes:
         for k in ks[fits]:
             st.shape_votes.pop(int(k), None)

@@ -847,6 +847,42 @@ def test_layouts_are_trusted_from_the_frames_they_were_calibrated_from():
     assert not trusted[SEGMENTS.index("r_forearm")]
 
 
+def test_layout_trust_learned_from_a_history_at_once_is_what_its_frames_checked_one_by_one_give():
+    """`learn_layout_trust` registers every frame's segments in one batch; the shares it leaves are those of
+    registering each checked frame's segments on its own (`_layout_fits`) and counting them in frame order,
+    with markers hidden on some frames (segments checked on some frames only) and a segment swapped on
+    others."""
+    from protocol.skeleton import SEGMENTS
+
+    perf = perform(5, duration_s=1.0)
+    m = len(perf.marker_names)
+    rng = np.random.default_rng(0)
+    model = tracker.SubjectModel("P", perf.marker_names, perf.marker_segment, perf.marker_offsets_m,
+                                 perf.joint_offsets_m, True, layout_offsets_m=perf.marker_offsets_m,
+                                 layout_rms_m=rng.uniform(0.0005, 0.004, m))
+    history = perf.recording.points_m[:90] + rng.normal(0.0, 0.004, (90, m, 3))
+    history[rng.random((90, m)) < 0.3] = np.nan
+    fore = np.flatnonzero(perf.marker_segment == SEGMENTS.index("l_forearm"))
+    history[40:70, fore[:2]] = history[40:70, fore[[1, 0]]]
+    st, ref = (tracker.new_state(model, perf.recording.points_m[0], t_ns(0)) for _ in range(2))
+    for s in (st, ref):  # checked before (a recalibration's): the shares are running means, the order counts
+        s.shape_fit[:], s.shape_checks[:] = 0.5, 60
+    tracker.learn_layout_trust(model, st, history)
+
+    checked = 0
+    for frame in history[:: tracker.SHAPE_EVERY_FRAMES]:
+        sel = np.isfinite(frame[:, 0]) & tracker._layout_slots(model, ref)
+        counts = np.bincount(model.marker_segment[sel], minlength=tracker.N_SEGMENTS)
+        ks = np.flatnonzero(counts >= tracker.SHAPE_MIN_LABELED)
+        _, _, n_lab, rms, typical = tracker._layout_fits(model, frame, sel, ks)
+        tracker._count_layout_fits(ref, ks, rms <= tracker._fit_tolerance(n_lab, typical)[1])
+        checked += len(ks)
+    assert checked > 200 and (ref.shape_checks < ref.shape_checks.max()).any()  # segments left out on some frames
+    assert 0.0 < ref.shape_fit[SEGMENTS.index("l_forearm")] < 1.0
+    np.testing.assert_array_equal(st.shape_checks, ref.shape_checks)
+    np.testing.assert_allclose(st.shape_fit, ref.shape_fit, rtol=0, atol=1e-12)
+
+
 def _right_foot(heel_m, toe_m, mt5_m):
     """A synthetic performer's first frame with its right foot's heel, toe and fifth metatarsal markers
     moved to these offsets (its layout, calibrated to 1 mm): (perf, model, R_parent_segment, points,
