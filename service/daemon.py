@@ -389,6 +389,10 @@ class Daemon:
         for out in outputs:
             if getattr(out, "has_pose", True):
                 self._publish(pm.encode(pose_message(out)))
+        try:
+            self.engine.between_frames()  # (taking a calibration costs 3-5 ms: not before the messages are out)
+        except Exception as e:  # noqa: BLE001 - as for step; the next step does it again
+            self._count_error("engine_error", e)
         self.frames_processed += 1
         self.points_received += stats.n_points
         self.points_invalid += stats.n_invalid

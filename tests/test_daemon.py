@@ -70,6 +70,9 @@ class FakeEngine:
     def complete(self, outputs):
         return outputs
 
+    def between_frames(self):
+        pass
+
     def subjects(self):
         return list(self.markers)
 
@@ -500,11 +503,23 @@ def test_labels_a_seeded_synthetic_subject_and_resumes_after_restart(tmp_path):
 
 def test_labels_of_every_subject_go_out_before_the_poses(tmp_path):
     """Per frame: all labels/<subject> first (the latency-critical answer), then Engine.complete, then the
-    pose/<subject> messages it completed."""
+    pose/<subject> messages it completed, then the work between frames (Engine.between_frames)."""
     class Completing(FakeEngine):
+        def __init__(self):
+            super().__init__()
+            self.calls = []
+
+        def step(self, frame, defer=False):
+            self.calls.append("step")
+            return super().step(frame, defer)
+
         def complete(self, outputs):
             self.completed = [o.subject for o in outputs]
+            self.calls.append("complete")
             return outputs
+
+        def between_frames(self):
+            self.calls.append("between")
 
     engine = Completing()
     with running(Daemon(free_config(tmp_path), engine=engine)) as r:
@@ -519,3 +534,4 @@ def test_labels_of_every_subject_go_out_before_the_poses(tmp_path):
                 topics.append(parts[0].decode())
     assert topics == ["labels/A", "labels/B", "pose/A", "pose/B"]
     assert engine.completed == ["A", "B"]
+    assert engine.calls == ["step", "complete", "between"] * 2

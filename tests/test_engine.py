@@ -414,11 +414,12 @@ def test_two_seeded_subjects_share_no_point():
 
 def test_deferred_bookkeeping_gives_the_same_labels_and_poses():
     """The daemon steps with defer=True, publishes the labels, then calls complete: the state update and the
-    solve launch run there. Labels, predictions and poses are those of a plain step, frame by frame, and the
-    deferred work is done by complete (or, if a caller never completes, by the next step)."""
+    solve launch run there; once the poses are out, between_frames takes the helper's calibrations and
+    refinements. Labels, predictions and poses are those of a plain step, frame by frame, and the deferred
+    work is done by complete and between_frames (or, if a caller never calls them, by the next step)."""
     seq = corrupt(multi_perform((3, 4), duration_s=4.0)[0], "L2", 3)
     plain, deferred = Engine(EngineConfig(tpose_auto=False)), Engine(EngineConfig(tpose_auto=False))
-    n_deferred = 0
+    n_deferred = n_taken = 0
     for f, points in enumerate(seq.points_m):
         if points is None:
             continue
@@ -430,6 +431,9 @@ def test_deferred_bookkeeping_gives_the_same_labels_and_poses():
         if f % 7:  # on every 7th frame the next step finishes what was deferred
             got = deferred.complete(got)
             assert all(deferred._subjects[o.subject].state.unfinished is None for o in got)
+            models = {name: deferred._subjects[name].model for name in deferred.subjects()}
+            deferred.between_frames()
+            n_taken += sum(deferred._subjects[name].model is not model for name, model in models.items())
         for a, b in zip(want, got):
             np.testing.assert_array_equal(a.point_index, b.point_index)
             np.testing.assert_array_equal(a.predicted_m, b.predicted_m)
@@ -437,6 +441,7 @@ def test_deferred_bookkeeping_gives_the_same_labels_and_poses():
             if f % 7:
                 np.testing.assert_array_equal(a.rotations_xyzw, b.rotations_xyzw)
     assert n_deferred > 0.9 * (len(seq.points_m) - seq.seed_frames) * 2
+    assert n_taken >= 2  # (both subjects' calibrations)
 
 
 def test_calibrations_queued_together_take_effect_one_job_apart():
