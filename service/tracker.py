@@ -812,8 +812,11 @@ def _around_joint(model: SubjectModel, o: np.ndarray, lab: np.ndarray, los: np.n
         # stayed unlabeled in view for 20 frames, two players at L2). Nor is the joint registered with them.
         # (Dev suite, 18 realizations: L2 99.316 -> 99.320 %, L3 98.405 -> 98.410 %, 18 runs up, 3 down by
         # 0.05 points at most.)
-        hyps += [((i, p),) for r, i in enumerate(los) for p in (pool if len(lab) >= 3 else options[i])
-                 if _norm(points[p] - at[r]) < gate]
+        # (each lost marker's candidates at once: point by point, the whole pool with three labeled markers,
+        # took 1-2 ms a segment with several subjects' points unclaimed)
+        for r, i in enumerate(los):
+            cands = pool if len(lab) >= 3 else options[i]
+            hyps += [((i, p),) for p in cands[_norm(points[cands] - at[r]) < gate]]
     elif len(lab):  # one point with the joint and a labeled marker already fixes the segment
         hyps += [((i, p),) for i in los for p in options[i]]
     for a, i in enumerate(los):
@@ -823,21 +826,26 @@ def _around_joint(model: SubjectModel, o: np.ndarray, lab: np.ndarray, los: np.n
                 for q in options[j]:
                     if p != q and abs(_norm(points[p] - points[q]) - d_model) < SEARCH_PAIR_TOL_M:
                         hyps.append(((i, p), (j, q)))
+    if not hyps:
+        return []
+    # (every hypothesis registered and its other markers placed in one compiled call: one by one, each
+    # cost ~60 us of numpy calls, and a frame of eight subjects offered a lost forearm hundreds)
+    mk = np.full((len(hyps), 2), -1, np.int64)
+    pt = np.full((len(hyps), 2), -1, np.int64)
+    for r, h in enumerate(hyps):
+        for c, (i, p) in enumerate(h):
+            mk[r, c], pt[r, c] = i, p
+    f64, i64 = (lambda a: np.require(a, np.float64, "C")), (lambda a: np.require(a, np.int64, "C"))
+    keep, rms_of, Rs, ts, placed = kernels.joint_hypotheses(
+        f64(base_a), f64(base_b), f64(off), f64(points), mk, pt, i64(los), i64(pool), i64(near), len(lab) >= 3,
+        float(tol_m), SEARCH_INLIER_M)
     scored = []
-    for h in hyps:
-        mk = np.array([i for i, _ in h])
-        pt = np.array([p for _, p in h])
-        A, B = np.vstack([base_a, off[mk]]), np.vstack([base_b, points[pt]])
-        pinned = len(lab) >= 3 and len(h) == 1  # (placed by three labeled markers, above: no joint)
-        R, t = rigid_motion(A[1:], B[1:]) if pinned else rigid_motion(A, B)
-        res = _norm(A @ R.T + t - B)
-        if (not pinned and res.max() > 2 * tol_m) or res[1:].max() > 2 * SEARCH_INLIER_M:
-            continue
-        assignment = _placed(off, los, R, t, points, pool if pinned else near)
-        assignment.update({int(i): int(p) for i, p in h})
+    for r in np.flatnonzero(keep):
+        assignment = {int(los[c]): int(placed[r, c]) for c in np.flatnonzero(placed[r] >= 0)}
+        assignment.update({int(i): int(p) for i, p in hyps[r]})
         if len(set(assignment.values())) < len(assignment):
             continue
-        rms = float(np.sqrt(np.mean(res[1:] ** 2 if pinned else res**2)))
+        rms, R, t = float(rms_of[r]), Rs[r], ts[r]
         if refine and len(assignment) >= 3:
             # the joint is only roughly where the parent's placement put it: the markers placed, alone, place
             # the segment again

@@ -257,6 +257,47 @@ def test_rigid_motion_matches_scipy_and_keeps_a_rotation_for_mirrored_points():
         np.testing.assert_allclose(got_t, b.mean(0) - got_R @ a.mean(0), atol=1e-12)
 
 
+def test_joint_hypotheses_register_and_place_as_numpy_did_one_by_one():
+    """Each hypothesis as `tracker._around_joint` scored it with numpy: registered (Kabsch) with the
+    segment's joint and labeled markers (without the joint when pinned and one marker), kept if its
+    residuals pass, and every lost marker placed on the nearest candidate point within the inlier radius."""
+    from service.tracker import _norm
+
+    rng = np.random.default_rng(9)
+    off = rng.normal(0.0, 0.06, (8, 3))
+    R0 = Rotation.random(random_state=3).as_matrix()
+    joint = np.array([0.3, -0.2, 1.1])
+    truth = off @ R0.T + joint
+    points = np.vstack([truth + rng.normal(0.0, 0.002, truth.shape), rng.uniform(-0.2, 0.2, (30, 3)) + joint])
+    los, pool = np.array([3, 4, 5, 6, 7]), np.arange(3, len(points))
+    near = pool[_norm(points[pool] - joint) < 0.25]
+    hyps = [((3, 3),), ((4, 4),), ((3, 9),), ((5, 5), (6, 6)), ((5, 12), (7, 7)), ((6, 6), (7, 20))]
+    mk = np.array([[i for i, _ in h] + [-1] * (2 - len(h)) for h in hyps])
+    pt = np.array([[p for _, p in h] + [-1] * (2 - len(h)) for h in hyps])
+    for lab, pinned in ((np.array([0, 1, 2]), True), (np.array([0, 1]), False), (np.array([0]), False)):
+        base_a = np.vstack([np.zeros((1, 3)), off[lab]])
+        base_b = np.vstack([joint[None] + 0.004, points[lab]])
+        keep, rms, Rs, ts, placed = kernels.joint_hypotheses(base_a, base_b, off, points, mk, pt, los, pool, near,
+                                                             pinned, 0.03, 0.02)
+        for h, hyp in enumerate(hyps):
+            A = np.vstack([base_a, off[[i for i, _ in hyp]]])
+            B = np.vstack([base_b, points[[p for _, p in hyp]]])
+            one = pinned and len(hyp) == 1
+            R, t = kernels.rigid_motion(A[1:], B[1:]) if one else kernels.rigid_motion(A, B)
+            res = _norm(A @ R.T + t - B)
+            want = not ((not one and res.max() > 0.06) or res[1:].max() > 0.04)
+            assert keep[h] == want, (lab, h)
+            if not want:
+                continue
+            np.testing.assert_allclose(rms[h], np.sqrt(np.mean(res[1:] ** 2 if one else res**2)), rtol=1e-12)
+            np.testing.assert_allclose(Rs[h], R, atol=1e-14)
+            np.testing.assert_allclose(ts[h], t, atol=1e-14)
+            cands = pool if one else near
+            d = _norm((off[los] @ R.T + t)[:, None] - points[cands][None])
+            np.testing.assert_array_equal(placed[h], np.where(d.min(1) < 0.02, cands[d.argmin(1)], -1))
+        assert keep.any() and not keep.all() and (placed[keep] >= 0).any()
+
+
 def test_segment_fits_register_every_labelling_and_place_the_joint():
     rng = np.random.default_rng(9)
     off = rng.normal(0.0, 0.06, (6, 3))  # a segment of six markers; its joint at the offsets' origin
@@ -280,7 +321,7 @@ def test_segment_fits_register_every_labelling_and_place_the_joint():
 
 KERNELS = ("track_predictions", "track_labels", "carried_labels", "rigid_predict", "distance_misfit", "update_distances",
            "kabsch_rms", "gated_pairs", "commit_motion", "snapshot", "world_transforms", "repeats",
-           "relabel_candidates", "segment_fits", "rigid_motion")
+           "relabel_candidates", "segment_fits", "rigid_motion", "joint_hypotheses")
 
 
 _COMPILE_ONCE = """
