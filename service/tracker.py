@@ -835,10 +835,9 @@ def _around_joint(model: SubjectModel, o: np.ndarray, lab: np.ndarray, los: np.n
     for r, h in enumerate(hyps):
         for c, (i, p) in enumerate(h):
             mk[r, c], pt[r, c] = i, p
-    f64, i64 = (lambda a: np.require(a, np.float64, "C")), (lambda a: np.require(a, np.int64, "C"))
     keep, rms_of, Rs, ts, placed = kernels.joint_hypotheses(
-        f64(base_a), f64(base_b), f64(off), f64(points), mk, pt, i64(los), i64(pool), i64(near), len(lab) >= 3,
-        float(tol_m), SEARCH_INLIER_M)
+        *(np.require(a, np.float64, "C") for a in (base_a, base_b, off, points)), mk, pt,
+        *(np.require(a, np.int64, "C") for a in (los, pool, near)), len(lab) >= 3, float(tol_m), SEARCH_INLIER_M)
     scored = []
     for r in np.flatnonzero(keep):
         assignment = {int(los[c]): int(placed[r, c]) for c in np.flatnonzero(placed[r] >= 0)}
