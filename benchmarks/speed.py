@@ -273,13 +273,14 @@ def label_throughput(data_dir: Path, file: str, max_skip_frames: int | None) -> 
 
 def engine_cost(data_dir: Path, cache_dir: str, seconds: float = COST_S) -> dict:
     """Per-frame engine cost (issue: one 41-marker subject at L2), in a fresh process with default XLA
-    threading: `Engine.step` and `Engine.complete` called as the daemon calls them, on the same frames
-    three times, each time with a fresh engine:
+    threading: `Engine.step(defer=True)`, `Engine.complete` and `Engine.between_frames` called as the
+    daemon calls them, on the same frames three times, each time with a fresh engine:
 
     - paced at the recording's rate, like a live stream. Reports the labels path (`step`: the frame's
-      labels known), the pose path (`step` + `complete`: its pose known too) and the CPU time per frame
-      (the process's threads: the frame loop, XLA's solves; and the helper process: calibration and
-      refinement).
+      labels known, which the daemon publishes then), the pose path (`step` + `complete`: its pose known
+      too), the whole frame (+ `between_frames`: the bookkeeping is done and the engine waits for the next
+      frame) and the CPU time per frame (the process's threads: the frame loop, XLA's solves; and the
+      helper process: calibration and refinement).
     - back to back: the next frame as soon as the last one's pose is known, and the helper's jobs (which
       a live stream gives their stream time in wall time) waited for between frames, untimed. It shows
       the engine's own cost with warm caches.
@@ -331,7 +332,7 @@ def _cost_run(seq, seconds: float, paced: bool, spin: bool = False) -> dict:
     engine.warm_up()
     helper = worker.shared()  # started by warm_up
     period_s = 1.0 / seq.rate_hz
-    step_ms, pose_ms, solved = [], [], 0
+    step_ms, pose_ms, frame_ms, solved = [], [], [], 0
     cpu0 = start = None
     for f in range(n):
         pts = seq.points_m[f]
@@ -348,20 +349,24 @@ def _cost_run(seq, seconds: float, paced: bool, spin: bool = False) -> dict:
         elif not paced:
             helper.wait_idle()
         t0 = time.perf_counter()
-        outputs, _ = engine.step(frame)
+        outputs, _ = engine.step(frame, defer=True)  # (the daemon's calls, in its order)
         t1 = time.perf_counter()
         outputs = engine.complete(outputs)
         t2 = time.perf_counter()
+        engine.between_frames()
+        t3 = time.perf_counter()
         if f >= n_seed:
             step_ms.append(1e3 * (t1 - t0))
             pose_ms.append(1e3 * (t2 - t0))
+            frame_ms.append(1e3 * (t3 - t0))
             solved += any(o.solved for o in outputs)
     cpu_ms = 1e3 * (time.process_time() + helper.cpu_s() - cpu0) / max(len(step_ms), 1)
-    a, b = np.array(step_ms), np.array(pose_ms)
-    return {"frames": len(a),
-            "labels_mean_ms": float(a.mean()), "labels_p50_ms": float(np.median(a)), "labels_p99_ms": float(np.percentile(a, 99)),
-            "pose_mean_ms": float(b.mean()), "pose_p50_ms": float(np.median(b)), "pose_p99_ms": float(np.percentile(b, 99)),
-            "cpu_ms_per_frame": cpu_ms, "solved_fraction": solved / max(len(a), 1)}
+    out = {"frames": len(step_ms), "cpu_ms_per_frame": cpu_ms, "solved_fraction": solved / max(len(step_ms), 1)}
+    for name, ms in (("labels", step_ms), ("pose", pose_ms), ("frame", frame_ms)):
+        a = np.array(ms)
+        out.update({f"{name}_mean_ms": float(a.mean()), f"{name}_p50_ms": float(np.median(a)),
+                    f"{name}_p99_ms": float(np.percentile(a, 99))})
+    return out
 
 
 def _idle_penalty(calls: int = 200, spin: bool = False) -> float:
@@ -702,11 +707,14 @@ def report_lines(inproc: dict, speed: dict) -> list[str]:
         lines.append(f"| {title} | {res} | {_f(d.get('peak_rss_mb'), '{:.0f}')} |")
     d = speed.get("engine_cost", {})
     res = err(d) or (f"paced at its rate: labels {d['labels_mean_ms']:.2f} / {d['labels_p50_ms']:.2f} / {d['labels_p99_ms']:.2f} ms, "
-                     f"labels + pose {d['pose_mean_ms']:.2f} / {d['pose_p50_ms']:.2f} / {d['pose_p99_ms']:.2f} ms "
+                     f"labels + pose {d['pose_mean_ms']:.2f} / {d['pose_p50_ms']:.2f} / {d['pose_p99_ms']:.2f} ms, "
+                     f"whole frame (+ between frames) {_f(d.get('frame_mean_ms'), '{:.2f}')} / {_f(d.get('frame_p50_ms'), '{:.2f}')} / "
+                     f"{_f(d.get('frame_p99_ms'), '{:.2f}')} ms "
                      f"(mean / p50 / p99; labels mean {runs(d, 'labels_mean_ms', '{:.2f}')}); CPU time (all threads, and the helper process) "
                      f"{d['cpu_ms_per_frame']:.2f} ms per frame. Back to back (the helper's jobs waited for between "
                      f"frames, untimed): labels {_f(d.get('b2b_labels_mean_ms'), '{:.2f}')} / {_f(d.get('b2b_labels_p50_ms'), '{:.2f}')} / "
-                     f"{_f(d.get('b2b_labels_p99_ms'), '{:.2f}')} ms (labels mean {runs(d, 'b2b_labels_mean_ms', '{:.2f}')}). "
+                     f"{_f(d.get('b2b_labels_p99_ms'), '{:.2f}')} ms (labels mean {runs(d, 'b2b_labels_mean_ms', '{:.2f}')}), whole frame "
+                     f"{_f(d.get('b2b_frame_mean_ms'), '{:.2f}')} / {_f(d.get('b2b_frame_p50_ms'), '{:.2f}')} / {_f(d.get('b2b_frame_p99_ms'), '{:.2f}')} ms. "
                      f"Paced, spinning between frames instead of sleeping (as `serve --busy-poll` waits): labels "
                      f"{_f(d.get('spin_labels_mean_ms'), '{:.2f}')} / {_f(d.get('spin_labels_p50_ms'), '{:.2f}')} / "
                      f"{_f(d.get('spin_labels_p99_ms'), '{:.2f}')} ms (labels mean {runs(d, 'spin_labels_mean_ms', '{:.2f}')}). "
@@ -714,7 +722,7 @@ def report_lines(inproc: dict, speed: dict) -> list[str]:
                      f"{100 * d['solved_fraction']:.0f} % of them. This machine's idle penalty: a small numpy "
                      f"computation run first after an 8 ms sleep takes {_f(d.get('idle_penalty'), '{:.1f}')}x as long as right after "
                      f"({_f(d.get('idle_penalty_spin'), '{:.1f}')}x after 8 ms of spinning)")
-    lines.append(f"| per-frame engine cost, one subject (`Engine.step`; `+ complete` for the pose) | {res} | "
+    lines.append(f"| per-frame engine cost, one subject (`Engine.step(defer=True)`; `+ complete` for the pose; `+ between_frames` for the whole frame) | {res} | "
                  f"{_f(d.get('peak_rss_mb'), '{:.0f}')} |")
     for key, title in (("startup_cold", "start-up to first labeled frame, empty compile cache"),
                        ("startup_warm", "start-up to first labeled frame, warm compile cache")):
