@@ -628,7 +628,6 @@ def fill_reference(history_m: np.ndarray, n_near: int = 5, frame: int | None = N
 # clearly better (its score under CANDIDATE_GAIN times the first's).
 CANDIDATE_FRAMES = 4
 CANDIDATE_GAIN = 0.35
-_LIMB_PAIRS = np.array([(S["l_" + n], S["r_" + n]) for n in ("upperarm", "forearm", "thigh", "shank", "foot")])
 
 
 def lopsided(marker_segment: np.ndarray) -> bool:
@@ -636,8 +635,7 @@ def lopsided(marker_segment: np.ndarray) -> bool:
     calibration that put a whole forearm's markers on the upper arm, or a hand hanging by the hip on the
     pelvis (a marker set is laid out alike on both sides; the person is not)."""
     count = np.bincount(marker_segment[marker_segment >= 0], minlength=N_SEGMENTS)
-    left, right = count[_LIMB_PAIRS[:, 0]], count[_LIMB_PAIRS[:, 1]]
-    return bool(np.any(((left == 0) & (right >= 2)) | ((right == 0) & (left >= 2))))
+    return bool(np.any((count == 0) & (count[MIRROR_SEGMENT] >= 2)))  # (a trunk segment is its own mirror)
 
 
 def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None = None):
