@@ -161,6 +161,7 @@ class _Subject:
     trial: _Trial | None = None  # a subject just found in a T-pose, until its window ends (`_Trial`)
     mirrors: list | None = None  # a labeled subject's markers its names imply but its seed never showed (`_name_mirrors`)
     mirror_tracks: dict = dataclasses.field(default_factory=dict)  # their candidate points: {name: [last look, track]}
+    mirror_look: tuple | None = None  # (frame, points, free) of a frame `_name_mirrors` is to look at
     poor_fit_frames: int = 0  # frames whose latest fit missed by more than RECALIBRATE_RMS_M, since the last look
     next_recalibration_frame: int = 0
     recalibration_interval: int = 0  # frames between recalibrations (doubles each time)
@@ -375,8 +376,8 @@ class Engine:
                         self._judge(s, frame, points, free)
                     else:
                         self._discover(s, frame, points, free)
-                elif s.model.has_skeleton and s.state.frames % MIRROR_EVERY_FRAMES == 0:
-                    self._name_mirrors(s, frame, points, free)
+                elif s.model.has_skeleton:
+                    s.mirror_look = (frame, points, free.copy())  # (looked at between frames: `_between_frames`)
         if self.config.tpose_auto and labels is None:
             for name in self._find_tposes(frame, points, free):
                 new_subjects.append(name)
@@ -778,15 +779,22 @@ class Engine:
         return sorted(names, key=lambda n: -self._subjects[n].state.last_labeled_t_ns)
 
     def _between_frames(self, s: _Subject) -> None:
-        """A subject's work between its frames, once: take the helper's calibration or refinement when it is
-        due (blocking solves that bring its pose up to the latest labels: 3-5 ms, more for a recalibration)
-        and start the next one. `between_frames` does it once a frame's messages are out, else the next
+        """A subject's work between its frames, once: the last frame's look for mirror images
+        (`_name_mirrors`, on the state that frame left), then take the helper's calibration or refinement
+        when it is due (blocking solves that bring its pose up to the latest labels: 3-5 ms, more for a
+        recalibration) and start the next one. `between_frames` does it once a frame's messages are out, else the next
         `step` does it before labeling; the state is the same either way (the frame count it checks moves
         only in a step). Done in `step` alone, the frame that took a calibration published its labels 5-9 ms
         late, and three or more subjects seeded together (their calibrations taken 0.45 s apart) missed the
         subject scan's 8.3 ms p99."""
+        tracker.collect(s.model, s.state)  # the last frame's fit, before anything reads the pose
+        look, s.mirror_look = s.mirror_look, None
+        if look is not None and s.state.frames % MIRROR_EVERY_FRAMES == 0:
+            # (on the state the frame left, whether its bookkeeping was deferred or not: before, a deferred
+            # step looked on the frames of another phase and the daemon named markers on other frames than
+            # `label`; and off the labels' path)
+            self._name_mirrors(s, *look)
         st = s.state
-        tracker.collect(s.model, st)  # the last frame's fit, before anything reads the pose
         if s.between_frame == st.frames:
             return
         s.between_frame = st.frames
