@@ -111,6 +111,129 @@ def carried_labels(point_index, cur, pred, gates, speed, dt, slide_share):
 
 
 @_jit
+def rigid_check(cur, rpred, spread, swing, labeled, max_swing, check_m):
+    """The rigid check of the tracked labels against their partners' predictions (`rigid_predict`): returns
+    has_rigid (M,) (a prediction exists), spread0 (M,) (its spread, 0 where none), steady (M,) (a
+    prediction whose swing is at most max_swing: one that may withdraw a label), err (M,) (a labeled
+    steady marker's distance to its prediction, else 0) and bad (M,) (err over check_m + 4 spread0).
+    Replaces the numpy formulation `has_rigid = isfinite(rpred[:, 0])`, `spread0 = where(has_rigid, spread,
+    0)`, `steady = has_rigid & (swing <= max_swing)`, `err = where(labeled & steady, norm(cur - rpred), 0)`,
+    `bad = labeled & steady & (err > check_m + 4 spread0)`. (tracker.step, 2.)"""
+    m = cur.shape[0]
+    has_rigid = np.zeros(m, np.bool_)
+    spread0 = np.zeros(m)
+    steady = np.zeros(m, np.bool_)
+    err = np.zeros(m)
+    bad = np.zeros(m, np.bool_)
+    for i in range(m):
+        if not math.isfinite(rpred[i, 0]):
+            continue
+        has_rigid[i] = True
+        spread0[i] = spread[i]
+        steady[i] = swing[i] <= max_swing
+        if labeled[i] and steady[i]:
+            err[i] = math.sqrt(_dist2(cur, i, rpred, i))
+            bad[i] = err[i] > check_m + 4.0 * spread0[i]
+    return has_rigid, spread0, steady, err, bad
+
+
+@_jit
+def far_from_fit(rpred, ref, placed, labeled, partners, segment, same_m, cross_m):
+    """Markers `placed` (hidden, with a rigid prediction) whose partners place them farther from the
+    skeleton fit's `ref` than same_m when a labeled partner is on their own segment, else cross_m (NaN in
+    ref: not far). Replaces the numpy formulation, over `placed` rows: `same = ((part >= 0) & labeled[part]
+    & (segment[part] == segment[:, None])).any(1)`, `norm(rpred - ref) > where(same, same_m, cross_m)`.
+    (tracker.step, 4.: stale predictions)"""
+    m = rpred.shape[0]
+    far = np.zeros(m, np.bool_)
+    for i in range(m):
+        if not placed[i]:
+            continue
+        same = False
+        for k in range(partners.shape[1]):
+            p = partners[i, k]
+            if p >= 0 and labeled[p] and segment[p] == segment[i]:
+                same = True
+                break
+        far[i] = math.sqrt(_dist2(rpred, i, ref, i)) > (same_m if same else cross_m)
+    return far
+
+
+@_jit
+def reacquire_gates(rpred, has_rigid, spread0, stale, missing, skel, use_fit, fit_trusted, hidden, dt, gate_m, cap_m,
+                    loose_m, widen_s, max_widen):
+    """Where to look for each hidden marker (`missing`), and how far: returns pred (M, 3) (NaN: nowhere),
+    gate (M,) (0 for markers not missing) and use_skel (M,) (placed by the fit). Rigid partners place a
+    marker, gate 0.8 gate_m + 3 spread0 (at most cap_m); with `use_fit`, the fit's `skel` places those
+    partners cannot, and, when the fit is trusted, those whose partners are loose (spread0 over loose_m)
+    or `stale`, gate gate_m widened by the time hidden (1 + hidden dt / widen_s, at most max_widen).
+    Replaces the numpy formulation `pred = where(has_rigid, rpred, nan)`, `gate = where(has_rigid,
+    minimum(0.8 gate_m + 3 spread0, cap_m), 0)`, `loose = has_rigid & ((spread0 > loose_m) | stale) &
+    fit_trusted`, `use_skel = missing & (~has_rigid | loose)` (with `use_fit`), `pred[use_skel] =
+    skel[use_skel]`, `gate[use_skel] = gate_m widen[use_skel]`, `gate = where(missing, gate, 0)`.
+    (tracker.step, 4.)"""
+    m = rpred.shape[0]
+    pred = np.full((m, 3), np.nan)
+    gate = np.zeros(m)
+    use_skel = np.zeros(m, np.bool_)
+    for i in range(m):
+        if not missing[i]:
+            if has_rigid[i]:
+                for c in range(3):
+                    pred[i, c] = rpred[i, c]
+            continue
+        loose = has_rigid[i] and (spread0[i] > loose_m or stale[i]) and fit_trusted
+        if use_fit and (not has_rigid[i] or loose):
+            use_skel[i] = True
+            for c in range(3):
+                pred[i, c] = skel[i, c]
+            gate[i] = gate_m * (1.0 + min(hidden[i] * dt / widen_s, max_widen - 1.0))
+        elif has_rigid[i]:
+            for c in range(3):
+                pred[i, c] = rpred[i, c]
+            gate[i] = min(0.8 * gate_m + 3.0 * spread0[i], cap_m)
+    return pred, gate, use_skel
+
+
+@_jit
+def frame_outcome(point_index, reacquired, cur, has_rigid, rpred, coast, skel, use_fit, ever_seen, spread0, stale,
+                  loose_m, fit_trusted):
+    """The frame's outcome for a subject: labeled (M,), source (M,) int8 (0 none, 1 tracked, 2
+    re-acquired), fallback (M, 3) (where the state puts an unlabeled marker: its partners' prediction,
+    else the fit's with `use_fit`, else `coast`), predicted (M, 3) (a labeled marker at its fit position
+    with `use_fit`, else at its point; the others at fallback), and whether the fit is wanted (a hidden
+    marker no partners place, or whose partners are loose while the fit is trusted, or stale). Replaces the
+    numpy formulation `fallback = where(has_rigid, rpred, coast)`, `fallback = where(~has_rigid, skel,
+    fallback)` (use_fit), `predicted = where(labeled, skel if use_fit else cur, fallback)`, `source =
+    where(labeled, where(reacquired, 2, 1), 0)`, `(~labeled & ever_seen & (~has_rigid | (spread0 > loose_m)
+    & fit_trusted | stale)).any()`. (tracker.step, 6. and 7.)"""
+    m = cur.shape[0]
+    labeled = np.zeros(m, np.bool_)
+    source = np.zeros(m, np.int8)
+    fallback = np.empty((m, 3))
+    predicted = np.empty((m, 3))
+    unplaced = False
+    for i in range(m):
+        labeled[i] = point_index[i] >= 0
+        if labeled[i]:
+            source[i] = 2 if reacquired[i] else 1
+        elif ever_seen[i] and (not has_rigid[i] or (spread0[i] > loose_m and fit_trusted) or stale[i]):
+            unplaced = True
+        for c in range(3):
+            if has_rigid[i]:
+                fallback[i, c] = rpred[i, c]
+            elif use_fit:
+                fallback[i, c] = skel[i, c]
+            else:
+                fallback[i, c] = coast[i, c]
+            if labeled[i]:
+                predicted[i, c] = skel[i, c] if use_fit else cur[i, c]
+            else:
+                predicted[i, c] = fallback[i, c]
+    return labeled, source, fallback, predicted, unplaced
+
+
+@_jit
 def rigid_predict(partners, snap, dist_var, pos, labeled, which):
     """For each marker i where `which[i]`, carry its partners' positions when it was last seen
     (`snap[i, j]`) onto their positions now (`pos`, labeled ones) by the weighted best rigid motion
@@ -710,7 +833,9 @@ def warm_up() -> float:
     stats = np.ones((m, m))
     labeled = np.ones(m, bool)
     rows = np.arange(m, dtype=np.int64)
-    rigid_predict(partners, snap, stats, pos, labeled, labeled)
+    pred, spread, swing = rigid_predict(partners, snap, stats, pos, labeled, labeled)
+    has_rigid, spread0, _, _, _ = rigid_check(pos, pred, spread, swing, labeled, 0.01, 0.006)
+    far_from_fit(pred, pos, labeled, labeled, partners, rows, 0.1, 0.2)
     distance_misfit(partners, stats, stats, stats, pos, labeled, rows)
     update_distances(stats.copy(), stats.copy(), stats.copy(), stats.copy(), stats.copy(), pos, labeled, 0.02, 0.002)
     kabsch_rms(snap, snap, np.ones((m, k + 1), bool))
@@ -719,6 +844,8 @@ def warm_up() -> float:
     idx, _, _ = track_labels(pos, rows, rows, labeled, pred, speed, 0.01, m, 0.006)
     carried_labels(idx, pos, pred, speed, speed, 0.01, 0.5)
     hidden = np.zeros(m, np.int64)
+    reacquire_gates(pred, has_rigid, spread0, labeled, labeled, pos, True, True, hidden, 0.01, 0.05, 0.1, 0.02, 0.5, 2.0)
+    frame_outcome(rows, labeled, pos, has_rigid, pred, pos, pos, True, labeled, spread0, labeled, 0.02, True)
     commit_motion(pos, pos, pos, labeled, hidden, labeled, pos, labeled, pos, 0.01, 15.0, 500.0)
     snapshot(snap, pos, labeled)
     world_transforms(pos[0], np.broadcast_to(np.eye(3), (m, 3, 3)).copy(), pos, np.arange(-1, m - 1))

@@ -1901,10 +1901,9 @@ def step(
     check[st.frames % CHECK_EVERY_FRAMES :: CHECK_EVERY_FRAMES] = True
     check &= st.ever_seen
     rpred, spread, swing = rigid_predictions(st, cur, labeled, check)
-    has_rigid = np.isfinite(rpred[:, 0])
-    spread0 = np.where(has_rigid, spread, 0.0)
-    steady = has_rigid & (swing <= RIGID_MAX_SWING_M)  # may withdraw a tracked label (NaN compares False)
-    err = np.where(labeled & steady, _norm(cur - rpred), 0.0)
+    # (steady: a prediction that may withdraw a tracked label; bad: a label it withdraws)
+    has_rigid, spread0, steady, err, bad = kernels.rigid_check(cur, rpred, spread, swing, labeled, RIGID_MAX_SWING_M,
+                                                               config.rigid_check_m)
     changed = _unswap(point_index, cur, rpred, err, config.rigid_check_m)
     if st.frames % REPAIR_EVERY_FRAMES == REPAIR_EVERY_FRAMES // 2:
         _repair_by_distances(st, point_index, cur, points, ~taken)
@@ -1913,12 +1912,12 @@ def step(
         changed = True
     if changed:  # (else every label and its error stand as computed)
         labeled = point_index >= 0
-        err = np.where(labeled & steady, _norm(cur - rpred), 0.0)
-    tol = config.rigid_check_m + 4.0 * spread0
-    bad = labeled & steady & (err > tol)
+        _, _, _, err, bad = kernels.rigid_check(cur, rpred, spread, swing, labeled, RIGID_MAX_SWING_M,
+                                                config.rigid_check_m)
     if bad.any():  # (few: computed on those only)
         rows = np.flatnonzero(bad)
-        bad[rows] = err[rows] > tol[rows] + RIGID_LOOSE_K * _partner_sigma(st, labeled, rows)
+        tol = config.rigid_check_m + 4.0 * spread0[rows]
+        bad[rows] = err[rows] > tol + RIGID_LOOSE_K * _partner_sigma(st, labeled, rows)
     # A re-acquired label is on probation: its distances to its partners are held to the long-run norm for
     # PROBATION_FRAMES, so a wrong re-acquisition cannot become its own reference and persist.
     on_probation = labeled & (st.provisional > 0)
@@ -1947,17 +1946,6 @@ def step(
 
     # 4. Re-acquire occluded markers (Hungarian on predictions, gated).
     coast = st.pos_m + st.vel_m_s * dt * 0.5
-    pred_missing = np.where(has_rigid[:, None], rpred, np.nan)
-    # the gate widens with the partners' misfit; when a well-fitting skeleton can take over from loose
-    # partners (below), not beyond MAX_GATE_FACTOR: loose partners place a marker poorly; with a skeleton,
-    # never beyond MAX_RIGID_GATE_FACTOR
-    gate_rigid = 0.8 * config.reacquire_gate_m + 3.0 * spread0
-    if skel_pred is not None and residual < SKELETON_TRUSTED_RMS_M:
-        gate_rigid = np.minimum(gate_rigid, MAX_GATE_FACTOR * config.reacquire_gate_m)
-    if model.has_skeleton:
-        gate_rigid = np.minimum(gate_rigid, MAX_RIGID_GATE_FACTOR * config.reacquire_gate_m)
-    gate_missing = np.where(has_rigid, gate_rigid, 0.0)
-    use_skel = np.zeros(m, bool)
     # Markers placed by rigid partners that put them far from the skeleton, where the fit has a word on
     # the segment (it is observed, or held between an observed parent and child; a foot back before its
     # leg is where the fit left it, and the segment search finds it). Partners across a joint learned while
@@ -1970,31 +1958,32 @@ def step(
     # (computed on the few hidden markers partners place, not on all: it runs on most frames)
     stale = np.zeros(m, bool)
     ref = skel_pred if skel_pred is not None else st.skel_pred_m
-    placed = np.flatnonzero(missing & has_rigid)
-    if ref is not None and len(placed):
+    if ref is not None:
         seg = model.marker_segment
-        part = st.partners[placed]
-        p = np.maximum(part, 0)
-        same = ((part >= 0) & labeled[p] & (seg[p] == seg[placed, None])).any(1)
-        far = _norm(rpred[placed] - ref[placed]) > np.where(same, SAME_SEGMENT_DISAGREE_M, CROSS_JOINT_DISAGREE_M)
+        far = kernels.far_from_fit(rpred, ref, missing & has_rigid, labeled, st.partners, seg,
+                                   SAME_SEGMENT_DISAGREE_M, CROSS_JOINT_DISAGREE_M)
         if far.any():
             observed = _observed_segments(seg, labeled)
             child_seen = np.zeros(N_SEGMENTS, bool)
             child_seen[_PARENTS[observed & (_PARENTS >= 0)]] = True
             held = observed | (child_seen & (_PARENTS >= 0) & observed[np.maximum(_PARENTS, 0)])
-            stale[placed[far]] = held[np.maximum(seg[placed[far]], 0)]
-    if skel_pred is not None:
-        # the skeleton speaks for markers with no rigid partners in view, and for those whose partners
-        # have moved against each other since (spread), or that they place far from it (above), when the
-        # skeleton itself fits well
-        loose = has_rigid & ((spread0 > LOOSE_SPREAD_M) | stale) & (residual < SKELETON_TRUSTED_RMS_M)
-        use_skel = missing & (~has_rigid | loose)
-        pred_missing[use_skel] = skel_pred[use_skel]
-        # a marker long hidden with its neighbours left its segment unobserved: the fit has kept that
-        # segment where it was, so the gate widens with the time hidden (the distance check below and
-        # probation keep ghosts out)
-        widen = 1.0 + np.minimum(st.hidden_frames * dt / HIDDEN_WIDEN_S, MAX_HIDDEN_GATE_FACTOR - 1.0)
-        gate_missing[use_skel] = config.reacquire_gate_m * widen[use_skel]
+            stale[far] = held[np.maximum(seg[far], 0)]
+    # Rigid partners place a hidden marker, in a gate that widens with their misfit: when a well-fitting
+    # skeleton can take over from loose partners (below), not beyond MAX_GATE_FACTOR (loose partners place
+    # a marker poorly); with a skeleton, never beyond MAX_RIGID_GATE_FACTOR. The skeleton speaks for
+    # markers with no rigid partners in view, and for those whose partners have moved against each other
+    # since (spread), or that they place far from it (above), when the skeleton itself fits well. A marker
+    # long hidden with its neighbours left its segment unobserved: the fit has kept that segment where it
+    # was, so its gate widens with the time hidden (the distance check below and probation keep ghosts out).
+    cap = np.inf
+    if skel_pred is not None and residual < SKELETON_TRUSTED_RMS_M:
+        cap = MAX_GATE_FACTOR * config.reacquire_gate_m
+    if model.has_skeleton:
+        cap = min(cap, MAX_RIGID_GATE_FACTOR * config.reacquire_gate_m)
+    pred_missing, gate_missing, use_skel = kernels.reacquire_gates(
+        rpred, has_rigid, spread0, stale, missing, rpred if skel_pred is None else skel_pred, skel_pred is not None,
+        residual < SKELETON_TRUSTED_RMS_M, st.hidden_frames, dt, config.reacquire_gate_m, cap, LOOSE_SPREAD_M,
+        HIDDEN_WIDEN_S, MAX_HIDDEN_GATE_FACTOR)
     subject_lost = labeled.sum() < 4
     st.lost_frames = st.lost_frames + 1 if subject_lost else 0
     if subject_lost:
@@ -2021,7 +2010,6 @@ def step(
             use = missing & ~np.isfinite(pred_missing[:, 0])
             pred_missing[use] = coast[use]
             gate_missing[use] = config.reacquire_gate_m
-    gate_missing = np.where(missing, gate_missing, 0.0)
     reacquired = np.zeros(m, bool)
 
     def accept(rows, cols, segment_rule: bool):
@@ -2102,21 +2090,16 @@ def step(
             labeled = point_index >= 0
             cur[bad] = np.nan
 
-    # 6. Where the state will put hidden markers (the bookkeeping below), and this frame's predictions.
-    fallback = np.where(has_rigid[:, None], rpred, coast)
-    if skel_pred is not None:
-        fallback = np.where((~has_rigid)[:, None], skel_pred, fallback)
-    predicted = np.where(labeled[:, None], cur, fallback)  # what _commit makes the state's positions
-    if skel_pred is not None:
-        predicted = np.where(labeled[:, None], skel_pred, predicted)
-
+    # 6. Where the state will put hidden markers (the bookkeeping below: their partners' prediction, else the
+    #    fit's, else coasting), and this frame's predictions (the fit's where there is one, for all markers).
     # 7. Launch (below) the skeleton fit on the final labels when a hidden marker is left that its rigid
     #    partners cannot place (the fit will place it from the next frame on), or when the skip budget is spent.
+    labeled, source, fallback, predicted, unplaced = kernels.frame_outcome(
+        point_index, reacquired, cur, has_rigid, rpred, coast, rpred if skel_pred is None else skel_pred,
+        skel_pred is not None, st.ever_seen, spread0, stale, LOOSE_SPREAD_M, st.fit_rms_m < SKELETON_TRUSTED_RMS_M)
     launch = False
     if model.has_skeleton and solver is not None:
-        missing = ~labeled & st.ever_seen
-        loose = (spread0 > LOOSE_SPREAD_M) & (st.fit_rms_m < SKELETON_TRUSTED_RMS_M)
-        if (missing & (~has_rigid | loose | stale)).any() or st.search_waits or st.skipped >= min(config.max_skip_frames, config.max_skip_s / dt - 1e-6):
+        if unplaced or st.search_waits or st.skipped >= min(config.max_skip_frames, config.max_skip_s / dt - 1e-6):
             launch = True
             st.skipped = 0
         else:
@@ -2164,7 +2147,6 @@ def step(
     st.unfinished = bookkeeping
     if not defer:
         finish(st)
-    source = np.where(point_index >= 0, np.where(reacquired, 2, 1), 0).astype(np.int8)
     return st, StepResult(
         source=source,
         point_index=point_index.astype(np.int32),

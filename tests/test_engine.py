@@ -55,7 +55,8 @@ def run(seq: CorruptedSequence, engine: Engine, seeded: bool = True, stats: list
             given.append(None)
             continue
         labels = seq.true_labels(f) if seeded and f < seq.seed_frames else None
-        outputs, st = engine.step(FrameInput("default", f, t_ns(f, seq.rate_hz), points, labels), defer=as_daemon)
+        frame = FrameInput("default", f, t_ns(f, seq.rate_hz), points, labels)
+        outputs, st = engine.step(frame, defer=True) if as_daemon else engine.step(frame)
         if as_daemon:
             outputs = engine.complete(outputs)
             engine.between_frames()

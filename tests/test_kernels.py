@@ -321,7 +321,8 @@ def test_segment_fits_register_every_labelling_and_place_the_joint():
 
 KERNELS = ("track_predictions", "track_labels", "carried_labels", "rigid_predict", "distance_misfit", "update_distances",
            "kabsch_rms", "gated_pairs", "commit_motion", "snapshot", "world_transforms", "repeats",
-           "relabel_candidates", "segment_fits", "rigid_motion", "joint_hypotheses")
+           "relabel_candidates", "segment_fits", "rigid_motion", "joint_hypotheses", "rigid_check", "far_from_fit",
+           "reacquire_gates", "frame_outcome")
 
 
 _COMPILE_ONCE = """
@@ -358,3 +359,94 @@ def test_each_kernel_compiles_once_for_the_types_the_tracker_passes():
     before, after = out.stdout.strip().splitlines()[-1].split("} {")
     assert before + "}" == "{" + after, out.stdout
     assert all(n == 1 for n in eval(before + "}").values()), out.stdout
+
+
+def _outcome_case(seed: int, m: int = 14):
+    """Random per-marker inputs of the tracker's step: labels, rigid predictions (NaN where none), spreads,
+    swings (NaN where none), the fit's positions."""
+    rng = np.random.default_rng(seed)
+    cur = rng.normal(0.0, 0.3, (m, 3))
+    labeled = rng.random(m) < 0.6
+    cur[~labeled] = np.nan
+    rpred = np.where(labeled[:, None], cur, 0.0) + rng.normal(0.0, 0.02, (m, 3))
+    rpred[rng.random(m) < 0.3] = np.nan
+    spread = np.where(np.isfinite(rpred[:, 0]), rng.uniform(0.0, 0.01, m), np.nan)
+    swing = np.where(rng.random(m) < 0.2, np.nan, rng.uniform(0.0, 0.02, m)) * (spread >= 0)
+    skel = rpred + rng.normal(0.0, 0.05, (m, 3))
+    skel[np.isnan(skel)] = rng.normal(0.0, 0.3, (np.isnan(skel).sum(),))
+    return rng, cur, labeled, rpred, spread, swing, skel
+
+
+def test_rigid_check_and_far_from_fit_match_the_numpy_formulation():
+    """The rigid check of tracked labels, and hidden markers placed far from the fit, as the numpy
+    formulation they replaced."""
+    n_far = n_near = 0
+    for seed in range(20):
+        rng, cur, labeled, rpred, spread, swing, skel = _outcome_case(seed)
+        m = len(cur)
+        got = kernels.rigid_check(cur, rpred, spread, swing, labeled, 0.01, 0.012)
+        has_rigid = np.isfinite(rpred[:, 0])
+        spread0 = np.where(has_rigid, spread, 0.0)
+        with np.errstate(invalid="ignore"):
+            steady = has_rigid & (swing <= 0.01)
+        err = np.where(labeled & steady, np.linalg.norm(cur - rpred, axis=1), 0.0)
+        for a, b in zip(got, (has_rigid, spread0, steady, err, labeled & steady & (err > 0.012 + 4.0 * spread0))):
+            np.testing.assert_allclose(a, b, rtol=1e-12)
+        partners = np.array([rng.permutation(np.delete(np.arange(m), i))[:5] for i in range(m)])
+        partners[rng.random(partners.shape) < 0.2] = -1
+        segment = rng.integers(0, 4, m)
+        placed = ~labeled & has_rigid
+        far = kernels.far_from_fit(rpred, skel, placed, labeled, partners, segment, 0.03, 0.2)
+        p = np.maximum(partners, 0)
+        same = ((partners >= 0) & labeled[p] & (segment[p] == segment[:, None])).any(1)
+        want = placed & (np.linalg.norm(rpred - skel, axis=1) > np.where(same, 0.03, 0.2))
+        np.testing.assert_array_equal(far, want)
+        n_far += far.sum()
+        n_near += (placed & ~far).sum()
+    assert n_far > 10 and n_near > 10  # (both cases are met)
+
+
+def test_reacquire_gates_and_frame_outcome_match_the_numpy_formulation():
+    """Where hidden markers are looked for and how far, and the frame's outcome (sources, where the state
+    puts hidden markers, the published predictions, whether the fit is wanted), with and without a fit,
+    as the numpy formulation they replaced."""
+    for seed in range(20):
+        rng, cur, labeled, rpred, spread, swing, skel = _outcome_case(seed)
+        m = len(cur)
+        has_rigid = np.isfinite(rpred[:, 0])
+        spread0 = np.where(has_rigid, spread, 0.0)
+        stale = rng.random(m) < 0.2
+        ever_seen = labeled | (rng.random(m) < 0.7)
+        missing = ~labeled & ever_seen
+        hidden = rng.integers(0, 200, m)
+        coast = rng.normal(0.0, 0.3, (m, 3))
+        point_index = np.where(labeled, rng.permutation(m), -1)
+        reacquired = labeled & (rng.random(m) < 0.3)
+        for use_fit in (False, True):
+            trusted = bool(seed % 3)
+            got = kernels.reacquire_gates(rpred, has_rigid, spread0, stale, missing, skel, use_fit, trusted, hidden,
+                                          0.01, 0.05, 0.12, 0.004, 0.5, 2.0)
+            pred = np.where(has_rigid[:, None], rpred, np.nan)
+            gate = np.where(has_rigid, np.minimum(0.8 * 0.05 + 3.0 * spread0, 0.12), 0.0)
+            use_skel = np.zeros(m, bool)
+            if use_fit:
+                loose = has_rigid & ((spread0 > 0.004) | stale) & trusted
+                use_skel = missing & (~has_rigid | loose)
+                pred[use_skel] = skel[use_skel]
+                gate[use_skel] = 0.05 * (1.0 + np.minimum(hidden * 0.01 / 0.5, 1.0))[use_skel]
+            np.testing.assert_array_equal(got[0][missing], pred[missing])
+            np.testing.assert_allclose(got[1], np.where(missing, gate, 0.0), rtol=1e-12)
+            np.testing.assert_array_equal(got[2], use_skel)
+
+            lab, source, fallback, predicted, unplaced = kernels.frame_outcome(
+                point_index, reacquired, cur, has_rigid, rpred, coast, skel, use_fit, ever_seen, spread0, stale,
+                0.004, trusted)
+            want = np.where(has_rigid[:, None], rpred, coast)
+            if use_fit:
+                want = np.where((~has_rigid)[:, None], skel, want)
+            np.testing.assert_array_equal(fallback, want)
+            np.testing.assert_array_equal(predicted, np.where(labeled[:, None], skel if use_fit else cur, want))
+            np.testing.assert_array_equal(lab, labeled)
+            np.testing.assert_array_equal(source, np.where(labeled, np.where(reacquired, 2, 1), 0))
+            loose = (spread0 > 0.004) & trusted
+            assert unplaced == (missing & (~has_rigid | loose | stale)).any()
