@@ -331,11 +331,11 @@ class Engine:
         return outputs, stats
 
     def _step(self, frame: FrameInput, defer: bool = False) -> tuple[list[SubjectOutput], FrameStats]:
-        pts = np.asarray(frame.points_m, dtype=np.float64).reshape(-1, 3)
-        finite = np.all(np.isfinite(pts), axis=1)
-        n_invalid = int((~finite).sum())
-        keep = np.flatnonzero(finite)
+        pts = np.ascontiguousarray(frame.points_m, dtype=np.float64).reshape(-1, 3)
+        keep = kernels.finite_rows(pts)
+        n_invalid = len(pts) - len(keep)
         points = pts[keep]
+        to_frame = np.append(keep, -1).astype(np.int32)  # a point's index in the frame as sent (-1, none: -1)
         labels = frame.labels if frame.labels is not None and len(frame.labels) == len(pts) else None
         free = np.ones(len(points), bool)
         repeats = _repeats(points, self.config.merge_radius_m)
@@ -354,7 +354,7 @@ class Engine:
             if created:
                 new_subjects.append(name)
             free[list(marks.values())] = False
-            outputs.append(self._observe(s, frame, points, marks, keep, append=not created))
+            outputs.append(self._observe(s, frame, points, marks, to_frame, append=not created))
         order = self._in_order(n for n, s in self._subjects.items() if s.stream == frame.stream and n not in given)
         self._stepped = order
         for name in order:
@@ -363,7 +363,7 @@ class Engine:
             s.state, res = tracker.step(s.model, s.state, points, free, frame.t_ns, self.config, self.solver, defer=True)
             free[res.point_index[res.point_index >= 0]] = False
             s.history.append(res.positions_m)
-            outputs.append(self._output(s, frame, res, keep))
+            outputs.append(self._output(s, frame, res, to_frame))
         if not defer:  # after every subject has labeled the frame, deferred or not: the same labels either way
             for name in order:
                 tracker.finish(self._subjects[name].state)
@@ -385,7 +385,7 @@ class Engine:
                 s.state, res = tracker.step(s.model, s.state, points, free, frame.t_ns, self.config, self.solver)
                 free[res.point_index[res.point_index >= 0]] = False
                 s.history.append(res.positions_m)
-                outputs.append(self._output(s, frame, res, keep))
+                outputs.append(self._output(s, frame, res, to_frame))
         n_labeled = int(sum(int((o.point_index >= 0).sum()) for o in outputs))
         return outputs, FrameStats(len(pts), n_invalid, n_labeled, len(repeats), tuple(new_subjects))
 
@@ -409,7 +409,7 @@ class Engine:
         self._subjects[name] = s
         return s, True
 
-    def _observe(self, s: _Subject, frame, points, marks, keep, append: bool) -> SubjectOutput:
+    def _observe(self, s: _Subject, frame, points, marks, to_frame, append: bool) -> SubjectOutput:
         tracker.collect(s.model, s.state)
         cur = _positions(s.model.markers, marks, points)
         if append:
@@ -419,7 +419,7 @@ class Engine:
         s.state, res = tracker.observe(s.model, s.state, cur, frame.t_ns, self.config, self.solver)
         idx = np.array([marks.get(m, -1) for m in s.model.markers], np.int32)
         res = dataclasses.replace(res, point_index=idx)
-        return self._output(s, frame, res, keep)
+        return self._output(s, frame, res, to_frame)
 
     def _phase(self, name: str) -> int:
         """The subject's phase: kept for its life (a subject rebuilt with new markers keeps it); a new one
@@ -861,10 +861,8 @@ class Engine:
         s.model, s.state = model, st
         s.history = hist
 
-    def _output(self, s: _Subject, frame, res: tracker.StepResult, keep) -> SubjectOutput:
-        idx = np.full(len(res.point_index), -1, np.int32)
-        ok = res.point_index >= 0
-        idx[ok] = keep[res.point_index[ok]]  # back to the frame's own indexing (non-finite points dropped)
+    def _output(self, s: _Subject, frame, res: tracker.StepResult, to_frame) -> SubjectOutput:
+        idx = to_frame[res.point_index]  # back to the frame's own indexing (non-finite points dropped)
         positions = res.positions_m.astype(np.float32)
         return SubjectOutput(
             subject=s.model.name,

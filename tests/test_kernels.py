@@ -322,7 +322,7 @@ def test_segment_fits_register_every_labelling_and_place_the_joint():
 KERNELS = ("track_predictions", "track_labels", "carried_labels", "rigid_predict", "distance_misfit", "update_distances",
            "kabsch_rms", "gated_pairs", "commit_motion", "snapshot", "world_transforms", "repeats",
            "relabel_candidates", "segment_fits", "rigid_motion", "joint_hypotheses", "rigid_check", "far_from_fit",
-           "reacquire_gates", "frame_outcome")
+           "reacquire_gates", "frame_outcome", "finite_rows")
 
 
 _COMPILE_ONCE = """
@@ -450,3 +450,13 @@ def test_reacquire_gates_and_frame_outcome_match_the_numpy_formulation():
             np.testing.assert_array_equal(source, np.where(labeled, np.where(reacquired, 2, 1), 0))
             loose = (spread0 > 0.004) & trusted
             assert unplaced == (missing & (~has_rigid | loose | stale)).any()
+
+
+def test_finite_rows_are_the_rows_with_three_finite_coordinates():
+    pts = np.random.default_rng(0).normal(size=(50, 3))
+    pts[np.random.default_rng(1).random((50, 3)) < 0.05] = np.nan
+    pts[7, 1], pts[9, 2] = np.inf, -np.inf
+    want = np.flatnonzero(np.all(np.isfinite(pts), axis=1))
+    np.testing.assert_array_equal(kernels.finite_rows(pts), want)
+    assert 7 not in want and 9 not in want and 0 < len(want) < 50
+    assert len(kernels.finite_rows(np.empty((0, 3)))) == 0
