@@ -447,6 +447,39 @@ def distance_misfit(partners, dist_n, mean, var, cur, labeled, rows):
 
 
 @_jit
+def probation(partners, dist_n, mean, var, cur, labeled, provisional, layout_hold, z_max):
+    """The labels on probation (labeled, provisional > 0) whose `distance_misfit` is over z_max, and the
+    probation and layout-hold counts one frame on (less one, not below 0): returns (wrong (M,),
+    provisional, layout_hold). Replaces the numpy formulation `on = labeled & (provisional > 0)`, `wrong =
+    on & (distance_misfit(..., flatnonzero(on)) > z_max)`, `maximum(provisional - 1, 0)`,
+    `maximum(layout_hold - 1, 0)`. (tracker.step, 2.)"""
+    m = cur.shape[0]
+    on = np.zeros(m, np.int64)
+    n = 0
+    for i in range(m):
+        if labeled[i] and provisional[i] > 0:
+            on[n] = i
+            n += 1
+    z = distance_misfit(partners, dist_n, mean, var, cur, labeled, on[:n])
+    wrong = np.zeros(m, np.bool_)
+    for r in range(n):
+        wrong[on[r]] = z[on[r]] > z_max
+    return wrong, np.maximum(provisional - 1, 0), np.maximum(layout_hold - 1, 0)
+
+
+@_jit
+def label_errors(cur, pred, use):
+    """|cur - pred| (M,) where `use`, else 0. Replaces the numpy formulation `norm(where(use[:, None], cur -
+    pred, 0), axis=1)`. (tracker.step, 3. and 5.)"""
+    m = cur.shape[0]
+    err = np.zeros(m)
+    for i in range(m):
+        if use[i]:
+            err[i] = math.sqrt(_dist2(cur, i, pred, i))
+    return err
+
+
+@_jit
 def update_distances(dist_n, mean, var, slow_mean, slow_var, pos, labeled, alpha_min, slow_alpha):
     """Running mean and variance of the distances between labeled markers, in place: a plain mean over
     the first 1/alpha samples, then an exponential one with weight alpha_min (slow_alpha for the
@@ -850,6 +883,8 @@ def warm_up() -> float:
     has_rigid, spread0, _, _, _ = rigid_check(pos, pred, spread, swing, labeled, 0.01, 0.006)
     far_from_fit(pred, pos, labeled, labeled, partners, rows, 0.1, 0.2)
     distance_misfit(partners, stats, stats, stats, pos, labeled, rows)
+    probation(partners, stats, stats, stats, pos, labeled, rows, rows, 3.0)
+    label_errors(pos, pos, labeled)
     update_distances(stats.copy(), stats.copy(), stats.copy(), stats.copy(), stats.copy(), pos, labeled, 0.02, 0.002)
     kabsch_rms(snap, snap, np.ones((m, k + 1), bool))
     gated_pairs(pos, np.ones(m), pos, labeled)

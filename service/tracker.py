@@ -597,8 +597,9 @@ def _gather(points: np.ndarray, point_index: np.ndarray) -> np.ndarray:
 def _unswap(point_index: np.ndarray, cur: np.ndarray, pred: np.ndarray, err: np.ndarray, tol_m: float) -> bool:
     """Swap the labels of two markers when each sits where the other is predicted (markers that passed
     close to each other and were tracked through crossed): crossed distances under half the straight
-    ones. In place; True if any pair was swapped."""
-    sus = np.flatnonzero((err > tol_m) & (point_index >= 0))
+    ones. `err`: each labeled marker's distance to its prediction, 0 for the others. In place; True if any
+    pair was swapped."""
+    sus = np.flatnonzero(err > tol_m)
     if len(sus) < 2:
         return False
     # all pairs at once (a poor fit can make a dozen suspects); the best pairs are taken greedily
@@ -1874,7 +1875,7 @@ def step(
     collect(model, st)
     m = model.n_markers
     dt = min(max((t_ns - st.last_t_ns) * 1e-9, 1e-4), 0.5) if st.frames or st.last_t_ns else 1.0 / 120
-    taken = ~free.copy()
+    taken = ~free
     if st.last_t_ns and (t_ns - st.last_t_ns) * 1e-9 > LOST_AFTER_GAP_S:
         st.labeled[:] = False  # the frames paused: no track is current, the subject is looked for (step 4)
 
@@ -1882,7 +1883,7 @@ def step(
     #    a frame step, not across dropped frames), matched inside gates that widen with their speed.
     pred_track, speed, gates = kernels.track_predictions(st.pos_m, st.vel_m_s, st.acc_m_s2, st.labeled, dt,
                                                          dt < 1.5 * st.acc_dt_s, config.nnt_gate_m)
-    rows, cols, contested = _assign(pred_track, gates, points, ~taken)
+    rows, cols, contested = _assign(pred_track, gates, points, free)
     taken[cols] = True
     # a label needs the rigid check when it was a choice, or when its point is not where the marker was
     # heading (a ghost caught in the gate as the marker vanished); a full check every CHECK_EVERY frames
@@ -1907,7 +1908,7 @@ def step(
     changed = _unswap(point_index, cur, rpred, err, config.rigid_check_m)
     if st.frames % REPAIR_EVERY_FRAMES == REPAIR_EVERY_FRAMES // 2:
         _repair_by_distances(st, point_index, cur, points, ~taken)
-        taken = ~free.copy()
+        taken = ~free
         taken[point_index[point_index >= 0]] = True
         changed = True
     if changed:  # (else every label and its error stand as computed)
@@ -1920,12 +1921,10 @@ def step(
         bad[rows] = err[rows] > tol + RIGID_LOOSE_K * _partner_sigma(st, labeled, rows)
     # A re-acquired label is on probation: its distances to its partners are held to the long-run norm for
     # PROBATION_FRAMES, so a wrong re-acquisition cannot become its own reference and persist.
-    on_probation = labeled & (st.provisional > 0)
-    if on_probation.any():
-        z = distance_misfit(st, cur, labeled, np.flatnonzero(on_probation))
-        bad |= on_probation & (z > Z_SUSPECT)
-    st.provisional = np.maximum(st.provisional - 1, 0)
-    st.layout_hold = np.maximum(st.layout_hold - 1, 0)
+    # (and the probation and layout-hold counts move on a frame)
+    wrong, st.provisional, st.layout_hold = kernels.probation(st.partners, st.dist_n, st.dist_mean_m, st.dist_var_m2, cur,
+                                                              labeled, st.provisional, st.layout_hold, Z_SUSPECT)
+    bad |= wrong
     if bad.any():
         taken[point_index[bad]] = False
         point_index[bad] = -1
@@ -1940,8 +1939,7 @@ def step(
     if skel_pred is not None and residual < 0.5 * config.reject_residual_m:
         # two labels that crossed where no partners could tell (a mirror-symmetric pair, such as the two
         # wrist markers, keeps every distance): each sits where the skeleton puts the other
-        err_s = _norm(np.where(labeled[:, None], cur - skel_pred, 0.0))
-        err_s[st.layout_hold > 0] = 0.0  # (see SHAPE_HOLD_FRAMES)
+        err_s = kernels.label_errors(cur, skel_pred, labeled & (st.layout_hold <= 0))  # (see SHAPE_HOLD_FRAMES)
         _unswap(point_index, cur, skel_pred, err_s, config.rigid_check_m)
 
     # 4. Re-acquire occluded markers (Hungarian on predictions, gated).
@@ -2083,7 +2081,7 @@ def step(
     # 5. Reject labels the model disagrees with.
     if skel_pred is not None and residual < 0.5 * config.reject_residual_m:
         # the model's word counts only where no rigid partners can speak for a marker
-        err = _norm(np.where(labeled[:, None], cur - skel_pred, 0.0))
+        err = kernels.label_errors(cur, skel_pred, labeled)
         bad = labeled & check & ~has_rigid & (err > config.reject_residual_m) & ~searched
         if bad.any():
             point_index[bad] = -1

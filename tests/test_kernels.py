@@ -322,7 +322,7 @@ def test_segment_fits_register_every_labelling_and_place_the_joint():
 KERNELS = ("track_predictions", "track_labels", "carried_labels", "rigid_predict", "distance_misfit", "update_distances",
            "kabsch_rms", "gated_pairs", "commit_motion", "snapshot", "world_transforms", "repeats",
            "relabel_candidates", "segment_fits", "rigid_motion", "joint_hypotheses", "rigid_check", "far_from_fit",
-           "reacquire_gates", "frame_outcome", "finite_rows")
+           "reacquire_gates", "frame_outcome", "finite_rows", "probation", "label_errors")
 
 
 _COMPILE_ONCE = """
@@ -460,3 +460,28 @@ def test_finite_rows_are_the_rows_with_three_finite_coordinates():
     np.testing.assert_array_equal(kernels.finite_rows(pts), want)
     assert 7 not in want and 9 not in want and 0 < len(want) < 50
     assert len(kernels.finite_rows(np.empty((0, 3)))) == 0
+
+
+def test_probation_and_label_errors_match_the_numpy_formulation():
+    """Labels on probation whose distances stray, the counts one frame on, and the distances of labels to
+    their predictions, as the numpy formulation they replaced."""
+    n_wrong = 0
+    for seed in range(10):
+        pos, cur, labeled, partners, snap, var, n, mean = _random_case(seed)
+        rng = np.random.default_rng(seed)
+        m = len(cur)
+        provisional = rng.integers(-1, 4, m)
+        hold = rng.integers(0, 3, m)
+        wrong, prov, held = kernels.probation(partners, n, mean, var, cur, labeled, provisional, hold, 1.0)
+        on = labeled & (provisional > 0)
+        with np.errstate(invalid="ignore"):
+            want = on & (kernels.distance_misfit(partners, n, mean, var, cur, labeled, np.flatnonzero(on)) > 1.0)
+        np.testing.assert_array_equal(wrong, want)
+        np.testing.assert_array_equal(prov, np.maximum(provisional - 1, 0))
+        np.testing.assert_array_equal(held, np.maximum(hold - 1, 0))
+        n_wrong += wrong.sum()
+        pred = pos + rng.normal(0.0, 0.01, pos.shape)
+        use = labeled & (hold <= 0)
+        np.testing.assert_allclose(kernels.label_errors(cur, pred, use),
+                                   np.linalg.norm(np.where(use[:, None], cur - pred, 0.0), axis=1), rtol=1e-12)
+    assert n_wrong > 0
