@@ -22,6 +22,7 @@ import time
 
 import numba
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 
 _jit = numba.njit(cache=True, nogil=True, fastmath=False)
 
@@ -609,6 +610,24 @@ def gated_pairs(pred, gates, points, cand):
 
 
 @_jit
+def assigned(rows, cols, cost, n_row, n_col, r, c):
+    """The Hungarian method's pairs (r, c) of `gated_pairs`' cost matrix as (marker, point, contested)
+    arrays: pairs at cost BIG (outside the gates) dropped; contested where the marker had another point in
+    its gate or the point was in another marker's gate. Replaces the numpy formulation `keep = cost[r, c] <
+    BIG`, `r, c = r[keep], c[keep]`, `rows[r], cols[c], (n_row[r] > 1) | (n_col[c] > 1)`. (tracker._assign)"""
+    out_r = np.empty(len(r), np.int64)
+    out_c = np.empty(len(r), np.int64)
+    contested = np.empty(len(r), np.bool_)
+    n = 0
+    for k in range(len(r)):
+        if cost[r[k], c[k]] < BIG:
+            out_r[n], out_c[n] = rows[r[k]], cols[c[k]]
+            contested[n] = n_row[r[k]] > 1 or n_col[c[k]] > 1
+            n += 1
+    return out_r[:n], out_c[:n], contested[:n]
+
+
+@_jit
 def commit_motion(pos, vel, acc, vel_measured, hidden, was_labeled, cur, labeled, fallback, dt, max_speed, max_acc):
     """One frame's labels folded into the markers' motion; returns new (pos, vel, acc, vel_measured,
     hidden). A marker labeled on both frames gets the measured velocity (smoothed 0.7 / 0.3 with the old
@@ -887,7 +906,8 @@ def warm_up() -> float:
     label_errors(pos, pos, labeled)
     update_distances(stats.copy(), stats.copy(), stats.copy(), stats.copy(), stats.copy(), pos, labeled, 0.02, 0.002)
     kabsch_rms(snap, snap, np.ones((m, k + 1), bool))
-    gated_pairs(pos, np.ones(m), pos, labeled)
+    rows_, cols_, cost, n_row, n_col = gated_pairs(pos, np.ones(m), pos, labeled)
+    assigned(rows_, cols_, cost, n_row, n_col, *linear_sum_assignment(cost))
     pred, speed, _ = track_predictions(pos, pos, pos, labeled, 0.01, True, 0.03)
     idx, _, _ = track_labels(pos, rows, rows, labeled, pred, speed, 0.01, m, 0.006)
     carried_labels(idx, pos, pred, speed, speed, 0.01, 0.5)

@@ -1851,10 +1851,7 @@ def _assign(pred: np.ndarray, gates: np.ndarray, points: np.ndarray, cand: np.nd
     if cost.shape[0] == 0:  # no choice to make: no Hungarian solve
         return rows, cols, np.zeros(len(rows), bool)
     r, c = linear_sum_assignment(cost)  # (only markers and points with a pair in the gates: a small problem)
-    keep = cost[r, c] < kernels.BIG
-    r, c = r[keep], c[keep]
-    contested = (n_row[r] > 1) | (n_col[c] > 1)
-    return rows[r], cols[c], contested
+    return kernels.assigned(rows, cols, cost, n_row, n_col, r, c)
 
 
 def step(

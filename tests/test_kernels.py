@@ -114,6 +114,20 @@ def test_gated_pairs_finds_the_pairs_in_the_gates_and_says_when_there_is_a_choic
     np.testing.assert_allclose(cost, [[kernels.BIG, 0.02**2 / 0.01 + sharp, 0.06**2 / 0.01 + sharp],
                                       [0.05**2 / 0.01 + sharp, kernels.BIG, kernels.BIG]])
     assert n_row.tolist() == [2, 1] and n_col.tolist() == [1, 1, 1]
+    r, c = linear_sum_assignment(cost)
+    got_rows, got_cols, contested = kernels.assigned(rows, cols, cost, n_row, n_col, r, c)
+    assert got_rows.tolist() == [0, 1] and got_cols.tolist() == [1, 0] and contested.tolist() == [True, False]
+    # markers 0 and 1 share one point, marker 2 has two: the Hungarian method pairs all three, one of
+    # the first two outside its gate (cost BIG), which is dropped
+    pred, gates = np.array([[0.0, 0, 0], [0.05, 0, 0], [3.0, 0, 0]]), np.full(3, 0.1)
+    points = np.array([[0.02, 0, 0], [3.0, 0, 0], [3.05, 0, 0]])
+    rows, cols, cost, n_row, n_col = kernels.gated_pairs(pred, gates, points, np.ones(3, bool))
+    r, c = linear_sum_assignment(cost)
+    assert (cost[r, c] >= kernels.BIG).sum() == 1
+    got_rows, got_cols, contested = kernels.assigned(rows, cols, cost, n_row, n_col, r, c)
+    keep = cost[r, c] < kernels.BIG
+    assert got_rows.tolist() == rows[r[keep]].tolist() and got_cols.tolist() == cols[c[keep]].tolist()
+    assert len(got_rows) == 2 and 2 in got_rows.tolist() and contested.all()
 
 
 def test_a_marker_placed_sharply_takes_a_contested_point_from_one_placed_loosely():
@@ -322,7 +336,7 @@ def test_segment_fits_register_every_labelling_and_place_the_joint():
 KERNELS = ("track_predictions", "track_labels", "carried_labels", "rigid_predict", "distance_misfit", "update_distances",
            "kabsch_rms", "gated_pairs", "commit_motion", "snapshot", "world_transforms", "repeats",
            "relabel_candidates", "segment_fits", "rigid_motion", "joint_hypotheses", "rigid_check", "far_from_fit",
-           "reacquire_gates", "frame_outcome", "finite_rows", "probation", "label_errors")
+           "reacquire_gates", "frame_outcome", "finite_rows", "probation", "label_errors", "assigned")
 
 
 _COMPILE_ONCE = """
