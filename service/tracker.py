@@ -1979,7 +1979,7 @@ def step(
         rpred, has_rigid, spread0, stale, missing, rpred if skel_pred is None else skel_pred, skel_pred is not None,
         residual < SKELETON_TRUSTED_RMS_M, st.hidden_frames, dt, config.reacquire_gate_m, cap, LOOSE_SPREAD_M,
         HIDDEN_WIDEN_S, MAX_HIDDEN_GATE_FACTOR)
-    subject_lost = labeled.sum() < 4
+    subject_lost = np.count_nonzero(labeled) < 4
     st.lost_frames = st.lost_frames + 1 if subject_lost else 0
     if subject_lost:
         # Lost (full occlusion, a restart from saved state, a subject that left the volume): look for the
