@@ -139,6 +139,50 @@ def rigid_check(cur, rpred, spread, swing, labeled, max_swing, check_m):
 
 
 @_jit
+def unswap(point_index, cur, pred, err, tol_m):
+    """Swap the labels of two markers when each sits where the other is predicted: among the markers whose
+    err (distance to their prediction; 0 for unlabeled ones) is over tol_m, pairs whose crossed distances
+    (|cur[b] - pred[a]| + |cur[a] - pred[b]|) are under half their straight ones (err[a] + err[b]), the
+    best (lowest crossed / straight) first, each marker once. point_index, cur and err (0 for a swapped
+    marker) in place; True if any pair was swapped. Replaces the numpy formulation that scored all pairs
+    at once and took them greedily in `argsort` order (tracker._unswap)."""
+    m = cur.shape[0]
+    sus = np.empty(m, np.int64)
+    n = 0
+    for i in range(m):
+        if err[i] > tol_m:
+            sus[n] = i
+            n += 1
+    if n < 2:
+        return False
+    score = np.full((n, n), np.inf)
+    for a in range(n):
+        for b in range(a + 1, n):
+            i, k = sus[a], sus[b]
+            crossed = math.sqrt(_dist2(cur, k, pred, i)) + math.sqrt(_dist2(cur, i, pred, k))
+            straight = err[i] + err[k]
+            if crossed < 0.5 * straight:
+                score[a, b] = crossed / straight
+    swapped = False
+    while True:  # greedy: the best pair left whose markers are both unswapped
+        best, ba, bb = np.inf, -1, -1
+        for a in range(n):
+            if err[sus[a]] == 0.0:
+                continue
+            for b in range(a + 1, n):
+                if score[a, b] < best and err[sus[b]] != 0.0:
+                    best, ba, bb = score[a, b], a, b
+        if ba < 0:
+            return swapped
+        i, k = sus[ba], sus[bb]
+        point_index[i], point_index[k] = point_index[k], point_index[i]
+        for c in range(3):
+            cur[i, c], cur[k, c] = cur[k, c], cur[i, c]
+        err[i] = err[k] = 0.0
+        swapped = True
+
+
+@_jit
 def far_from_fit(rpred, ref, placed, labeled, partners, segment, same_m, cross_m):
     """Markers `placed` (hidden, with a rigid prediction) whose partners place them farther from the
     skeleton fit's `ref` than same_m when a labeled partner is on their own segment, else cross_m (NaN in
@@ -899,7 +943,8 @@ def warm_up() -> float:
     labeled = np.ones(m, bool)
     rows = np.arange(m, dtype=np.int64)
     pred, spread, swing = rigid_predict(partners, snap, stats, pos, labeled, labeled)
-    has_rigid, spread0, _, _, _ = rigid_check(pos, pred, spread, swing, labeled, 0.01, 0.006)
+    has_rigid, spread0, _, err, _ = rigid_check(pos, pred, spread, swing, labeled, 0.01, 0.006)
+    unswap(rows.copy(), pos.copy(), pred, err, 0.006)
     far_from_fit(pred, pos, labeled, labeled, partners, rows, 0.1, 0.2)
     distance_misfit(partners, stats, stats, stats, pos, labeled, rows)
     probation(partners, stats, stats, stats, pos, labeled, rows, rows, 3.0)

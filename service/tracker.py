@@ -597,29 +597,10 @@ def _gather(points: np.ndarray, point_index: np.ndarray) -> np.ndarray:
 def _unswap(point_index: np.ndarray, cur: np.ndarray, pred: np.ndarray, err: np.ndarray, tol_m: float) -> bool:
     """Swap the labels of two markers when each sits where the other is predicted (markers that passed
     close to each other and were tracked through crossed): crossed distances under half the straight
-    ones. `err`: each labeled marker's distance to its prediction, 0 for the others. In place; True if any
-    pair was swapped."""
-    sus = np.flatnonzero(err > tol_m)
-    if len(sus) < 2:
-        return False
-    # all pairs at once (a poor fit can make a dozen suspects); the best pairs are taken greedily
-    d = _norm(cur[sus][None, :, :] - pred[sus][:, None, :])  # d[a, b] = |cur[b] - pred[a]|
-    crossed = d + d.T
-    straight = err[sus][:, None] + err[sus][None, :]
-    ok = crossed < 0.5 * straight
-    np.fill_diagonal(ok, False)
-    if not ok.any():
-        return False
-    score = np.where(ok, crossed / straight, np.inf)
-    for flat in np.argsort(score, axis=None)[: int(ok.sum())]:
-        a, b = divmod(int(flat), len(sus))
-        i, k = sus[a], sus[b]
-        if err[i] == 0.0 or err[k] == 0.0:  # one of them already swapped with a better partner
-            continue
-        point_index[i], point_index[k] = point_index[k], point_index[i]
-        cur[[i, k]] = cur[[k, i]]
-        err[i] = err[k] = 0.0
-    return True
+    ones, the best pairs first (a poor fit can make a dozen suspects). `err`: each labeled marker's
+    distance to its prediction, 0 for the others. In place; True if any pair was swapped. (A compiled
+    loop: `kernels.unswap`.)"""
+    return kernels.unswap(point_index, cur, pred, err, tol_m)
 
 
 def _unsure_on_unseen_segment(model: SubjectModel, labeled: np.ndarray, rows: np.ndarray, cur: np.ndarray,

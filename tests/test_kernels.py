@@ -336,7 +336,7 @@ def test_segment_fits_register_every_labelling_and_place_the_joint():
 KERNELS = ("track_predictions", "track_labels", "carried_labels", "rigid_predict", "distance_misfit", "update_distances",
            "kabsch_rms", "gated_pairs", "commit_motion", "snapshot", "world_transforms", "repeats",
            "relabel_candidates", "segment_fits", "rigid_motion", "joint_hypotheses", "rigid_check", "far_from_fit",
-           "reacquire_gates", "frame_outcome", "finite_rows", "probation", "label_errors", "assigned")
+           "reacquire_gates", "frame_outcome", "finite_rows", "probation", "label_errors", "assigned", "unswap")
 
 
 _COMPILE_ONCE = """
@@ -499,3 +499,54 @@ def test_probation_and_label_errors_match_the_numpy_formulation():
         np.testing.assert_allclose(kernels.label_errors(cur, pred, use),
                                    np.linalg.norm(np.where(use[:, None], cur - pred, 0.0), axis=1), rtol=1e-12)
     assert n_wrong > 0
+
+
+def _unswap_reference(point_index, cur, pred, err, tol_m):
+    """The numpy formulation `kernels.unswap` replaced (tracker._unswap before it)."""
+    sus = np.flatnonzero((err > tol_m) & (point_index >= 0))
+    if len(sus) < 2:
+        return False
+    d = np.linalg.norm(cur[sus][None, :, :] - pred[sus][:, None, :], axis=2)  # d[a, b] = |cur[b] - pred[a]|
+    crossed = d + d.T
+    straight = err[sus][:, None] + err[sus][None, :]
+    ok = crossed < 0.5 * straight
+    np.fill_diagonal(ok, False)
+    if not ok.any():
+        return False
+    score = np.where(ok, crossed / straight, np.inf)
+    for flat in np.argsort(score, axis=None)[: int(ok.sum())]:
+        a, b = divmod(int(flat), len(sus))
+        i, k = sus[a], sus[b]
+        if err[i] == 0.0 or err[k] == 0.0:
+            continue
+        point_index[i], point_index[k] = point_index[k], point_index[i]
+        cur[[i, k]] = cur[[k, i]]
+        err[i] = err[k] = 0.0
+    return True
+
+
+def test_unswap_uncrosses_the_pairs_the_numpy_formulation_did():
+    """Markers tracked through crossed (each on the point where another is predicted), with bystanders
+    off their predictions: the same swaps, best pairs first, as the numpy formulation it replaced."""
+    rng = np.random.default_rng(7)
+    n_swapped = 0
+    for _ in range(200):
+        m = 12
+        pred = rng.uniform(0.0, 0.4, (m, 3))
+        point_index = np.arange(m)
+        point_index[rng.random(m) < 0.2] = -1
+        cur = pred + rng.normal(0.0, 0.004, (m, 3))
+        crossed = rng.permutation(m)[: rng.integers(0, 6)]
+        cur[crossed] = cur[np.roll(crossed, 1)] + rng.normal(0.0, 0.01, (len(crossed), 3))  # a cycle of swaps
+        cur[point_index < 0] = np.nan
+        err = np.where(point_index >= 0, np.linalg.norm(cur - pred, axis=1), 0.0)
+        args = [point_index.copy(), cur.copy(), pred, err.copy(), 0.01]
+        want = _unswap_reference(*[a.copy() if isinstance(a, np.ndarray) else a for a in args])
+        ref = [a.copy() if isinstance(a, np.ndarray) else a for a in args]
+        _unswap_reference(*ref)
+        got = kernels.unswap(*args)
+        assert got == want
+        np.testing.assert_array_equal(args[0], ref[0])
+        np.testing.assert_array_equal(args[1], ref[1])
+        n_swapped += int((args[0] != point_index).sum())
+    assert n_swapped > 100
