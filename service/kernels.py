@@ -67,21 +67,26 @@ def track_predictions(pos, vel, acc, labeled, dt, use_acc, gate_m):
 
 
 @_jit
-def track_labels(points, rows, cols, contested, pred, speed, dt, m, check_m):
-    """The tracked labels (marker rows[k] on point cols[k]) as point_index (M,) (-1: none) and positions
-    cur (M, 3) (NaN: none), and which need the rigid check: a label that was a choice (`contested`), or
-    whose point is more than check_m + 10 % of the marker's step from where it was heading (a ghost caught
-    in the gate as the marker vanished). (tracker.step, 1.)"""
+def track_labels(points, rows, cols, contested, pred, speed, dt, m, check_m, ever_seen, check_phase, check_every):
+    """The tracked labels (marker rows[k] on point cols[k]) as point_index (M,) (-1: none), positions cur
+    (M, 3) (NaN: none) and labeled (M,), and which markers (ever seen) the rigid check looks at: the
+    unlabeled ones, a label that was a choice (`contested`) or whose point is more than check_m + 10 % of
+    the marker's step from where it was heading (a ghost caught in the gate as the marker vanished), and
+    every check_every-th marker from check_phase. (tracker.step, 1.)"""
     point_index = np.full(m, -1)
     cur = np.full((m, 3), np.nan)
-    suspicious = np.zeros(m, np.bool_)
+    labeled = np.zeros(m, np.bool_)
+    check = np.zeros(m, np.bool_)
     for k in range(rows.shape[0]):
         i, j = rows[k], cols[k]
         point_index[i] = j
+        labeled[i] = True
         for c in range(3):
             cur[i, c] = points[j, c]
-        suspicious[i] = contested[k] or math.sqrt(_dist2(points, j, pred, i)) > check_m + 0.1 * speed[i] * dt
-    return point_index, cur, suspicious
+        check[i] = contested[k] or math.sqrt(_dist2(points, j, pred, i)) > check_m + 0.1 * speed[i] * dt
+    for i in range(m):
+        check[i] = ever_seen[i] and (check[i] or not labeled[i] or i % check_every == check_phase)
+    return point_index, cur, labeled, check
 
 
 @_jit
@@ -954,7 +959,7 @@ def warm_up() -> float:
     rows_, cols_, cost, n_row, n_col = gated_pairs(pos, np.ones(m), pos, labeled)
     assigned(rows_, cols_, cost, n_row, n_col, *linear_sum_assignment(cost))
     pred, speed, _ = track_predictions(pos, pos, pos, labeled, 0.01, True, 0.03)
-    idx, _, _ = track_labels(pos, rows, rows, labeled, pred, speed, 0.01, m, 0.006)
+    idx, _, _, _ = track_labels(pos, rows, rows, labeled, pred, speed, 0.01, m, 0.006, labeled, 1, 3)
     carried_labels(idx, pos, pred, speed, speed, 0.01, 0.5)
     hidden = np.zeros(m, np.int64)
     reacquire_gates(pred, has_rigid, spread0, labeled, labeled, pos, True, True, hidden, 0.01, 0.05, 0.1, 0.02, 0.5, 2.0)

@@ -1865,9 +1865,10 @@ def step(
     taken[cols] = True
     # a label needs the rigid check when it was a choice, or when its point is not where the marker was
     # heading (a ghost caught in the gate as the marker vanished); a full check every CHECK_EVERY frames
-    point_index, cur, suspicious = kernels.track_labels(points, rows, cols, contested, pred_track, speed, dt, m,
-                                                        CHECK_RESIDUAL_M)
-    labeled = point_index >= 0
+    # (check: the markers step 2 checks)
+    point_index, cur, labeled, check = kernels.track_labels(points, rows, cols, contested, pred_track, speed, dt, m,
+                                                            CHECK_RESIDUAL_M, st.ever_seen,
+                                                            st.frames % CHECK_EVERY_FRAMES, CHECK_EVERY_FRAMES)
     # labels tracking carried on with no other marker's point in their gate, in a step short of half the
     # way to the nearest other label (a serving arm's labels slid one marker down the chain, each taking
     # the next one's point, none with a rival in its gate) (SETTLED_MIN_LABELS)
@@ -1876,9 +1877,6 @@ def step(
     # 2. Predict every marker from its rigid partners; a tracked label its partners disagree with (a swap
     #    of two close markers, a ghost caught while the marker hid) is withdrawn and re-assigned below.
     # (the full checks are spread over frames by marker index, so no frame carries them all: a flat p99)
-    check = ~labeled | suspicious
-    check[st.frames % CHECK_EVERY_FRAMES :: CHECK_EVERY_FRAMES] = True
-    check &= st.ever_seen
     rpred, spread, swing = rigid_predictions(st, cur, labeled, check)
     # (steady: a prediction that may withdraw a tracked label; bad: a label it withdraws)
     has_rigid, spread0, steady, err, bad = kernels.rigid_check(cur, rpred, spread, swing, labeled, RIGID_MAX_SWING_M,

@@ -153,11 +153,20 @@ def test_track_predictions_and_labels_follow_velocity_acceleration_and_the_gate(
     pred_no_acc, _, _ = kernels.track_predictions(pos, vel, acc, labeled, 0.01, False, 0.03)
     np.testing.assert_allclose(pred_no_acc[0], [0.01, 0, 0])
     points = np.array([[1.0, 0.05, 0], [0.015, 0.0, 0]])  # marker 1's point 3 cm off its heading
-    idx, cur, suspicious = kernels.track_labels(points, np.array([0, 1]), np.array([1, 0]), np.array([False, False]),
-                                                pred, speed, 0.01, 3, 0.006)
-    assert idx.tolist() == [1, 0, -1] and np.isnan(cur[2]).all()
+    seen = np.ones(3, bool)
+    idx, cur, lab, check = kernels.track_labels(points, np.array([0, 1]), np.array([1, 0]), np.array([False, False]),
+                                                pred, speed, 0.01, 3, 0.006, seen, 0, 4)
+    assert idx.tolist() == [1, 0, -1] and lab.tolist() == [True, True, False] and np.isnan(cur[2]).all()
     np.testing.assert_array_equal(cur[:2], points[[1, 0]])
-    assert suspicious.tolist() == [False, True, False]
+    # marker 0 checked as the full check's turn (phase 0 of 4), 1 as off its heading, 2 as unlabeled
+    assert check.tolist() == [True, True, True]
+    _, _, _, check = kernels.track_labels(points, np.array([0, 1]), np.array([1, 0]), np.array([False, False]),
+                                          pred, speed, 0.01, 3, 0.006, seen, 1, 4)
+    assert check.tolist() == [False, True, True]
+    seen[2] = False  # never seen: never checked
+    _, _, _, check = kernels.track_labels(points, np.array([0, 1]), np.array([1, 0]), np.array([True, False]),
+                                          pred, speed, 0.01, 3, 0.006, seen, 1, 4)
+    assert check.tolist() == [True, True, False]  # (marker 0 contested)
 
 
 def test_carried_labels_match_the_numpy_formulation():
