@@ -553,7 +553,9 @@ def _repair_by_distances(
     for slow in (True, False):
         labeled = point_index >= 0
         z = distance_misfit(st, cur, labeled, slow=slow)
-        sus = np.flatnonzero(labeled & (z > Z_SUSPECT))  # NaN compares False
+        sus = np.flatnonzero(z > Z_SUSPECT)  # (labeled ones: NaN for the others, and NaN compares False)
+        if len(sus) == 0:
+            continue
         free_idx = np.flatnonzero(free)
         for a, i in enumerate(sus):
             if point_index[i] < 0 or _swap_back(st, point_index, cur, labeled, z, i, sus[a + 1 :], slow):
