@@ -7,7 +7,13 @@ arithmetic in one compiled call each. Each mirrors the numpy formulation it repl
 names, and `tests/test_kernels.py` checks it against that formulation.
 
 With them a 41-marker frame (135_02 at L2, paced at 120 Hz: `python3 -m benchmarks.speed engine-cost`)
-went from 1.03 to ~0.5 ms mean, measured back to back on one machine.
+went from 1.03 to ~0.5 ms mean, measured back to back on one machine. Paced, a numpy call costs more: the
+first run of a computation after the 8 ms between frames takes 1.5-3x as long on this virtual machine
+(the benchmark's idle_penalty), ~5-15 us for a comparison or an `any` on a 41-element array. Folding the
+rest of the labels' path into loops here (the rigid check, the un-crossing of swapped labels, probation,
+the re-acquisition gates, the frame's outcome, the Hungarian pairs: ~60 calls) took the labels of a
+paced frame from 0.83-0.92 to 0.64-0.66 ms mean, back to back from 0.39-0.43 to 0.24 ms (two runs each
+of the same engine-cost measure, alternated, on one machine).
 
 Compiled once per machine: `cache=True` keeps the machine code in NUMBA_CACHE_DIR (the daemon and `label`
 point it at their --cache-dir/numba), else beside this file; `warm_up` loads or compiles every kernel
