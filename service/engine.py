@@ -782,9 +782,9 @@ class Engine:
         """A subject's work between its frames, once: the last frame's look for mirror images
         (`_name_mirrors`, on the state that frame left), then take the helper's calibration or refinement
         when it is due (blocking solves that bring its pose up to the latest labels: 3-5 ms, more for a
-        recalibration) and start the next one. `between_frames` does it once a frame's messages are out, else the next
-        `step` does it before labeling; the state is the same either way (the frame count it checks moves
-        only in a step). Done in `step` alone, the frame that took a calibration published its labels 5-9 ms
+        recalibration) and start the next one. `between_frames` does it once a frame's messages are out,
+        else the next `step` does it before labeling; the state is the same either way (the frame count it
+        checks moves only in a step). Done in `step` alone, the frame that took a calibration published its labels 5-9 ms
         late, and three or more subjects seeded together (their calibrations taken 0.45 s apart) missed the
         subject scan's 8.3 ms p99."""
         tracker.collect(s.model, s.state)  # the last frame's fit, before anything reads the pose

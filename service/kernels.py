@@ -254,8 +254,8 @@ def reacquire_gates(rpred, has_rigid, spread0, stale, missing, skel, use_fit, fi
 @_jit
 def frame_outcome(point_index, reacquired, cur, has_rigid, rpred, coast, skel, use_fit, ever_seen, spread0, stale,
                   loose_m, fit_trusted):
-    """The frame's outcome for a subject: labeled (M,), source (M,) int8 (0 none, 1 tracked, 2
-    re-acquired), fallback (M, 3) (where the state puts an unlabeled marker: its partners' prediction,
+    """The frame's outcome for a subject (labeled: point_index >= 0): source (M,) int8 (0 none, 1 tracked,
+    2 re-acquired), fallback (M, 3) (where the state puts an unlabeled marker: its partners' prediction,
     else the fit's with `use_fit`, else `coast`), predicted (M, 3) (a labeled marker at its fit position
     with `use_fit`, else at its point; the others at fallback), and whether the fit is wanted (a hidden
     marker no partners place, or whose partners are loose while the fit is trusted, or stale). Replaces the
@@ -264,14 +264,13 @@ def frame_outcome(point_index, reacquired, cur, has_rigid, rpred, coast, skel, u
     where(labeled, where(reacquired, 2, 1), 0)`, `(~labeled & ever_seen & (~has_rigid | (spread0 > loose_m)
     & fit_trusted | stale)).any()`. (tracker.step, 6. and 7.)"""
     m = cur.shape[0]
-    labeled = np.zeros(m, np.bool_)
     source = np.zeros(m, np.int8)
     fallback = np.empty((m, 3))
     predicted = np.empty((m, 3))
     unplaced = False
     for i in range(m):
-        labeled[i] = point_index[i] >= 0
-        if labeled[i]:
+        labeled = point_index[i] >= 0
+        if labeled:
             source[i] = 2 if reacquired[i] else 1
         elif ever_seen[i] and (not has_rigid[i] or (spread0[i] > loose_m and fit_trusted) or stale[i]):
             unplaced = True
@@ -282,11 +281,11 @@ def frame_outcome(point_index, reacquired, cur, has_rigid, rpred, coast, skel, u
                 fallback[i, c] = skel[i, c]
             else:
                 fallback[i, c] = coast[i, c]
-            if labeled[i]:
+            if labeled:
                 predicted[i, c] = skel[i, c] if use_fit else cur[i, c]
             else:
                 predicted[i, c] = fallback[i, c]
-    return labeled, source, fallback, predicted, unplaced
+    return source, fallback, predicted, unplaced
 
 
 @_jit

@@ -2070,7 +2070,7 @@ def step(
     #    fit's, else coasting), and this frame's predictions (the fit's where there is one, for all markers).
     # 7. Launch (below) the skeleton fit on the final labels when a hidden marker is left that its rigid
     #    partners cannot place (the fit will place it from the next frame on), or when the skip budget is spent.
-    labeled, source, fallback, predicted, unplaced = kernels.frame_outcome(
+    source, fallback, predicted, unplaced = kernels.frame_outcome(
         point_index, reacquired, cur, has_rigid, rpred, coast, rpred if skel_pred is None else skel_pred,
         skel_pred is not None, st.ever_seen, spread0, stale, LOOSE_SPREAD_M, st.fit_rms_m < SKELETON_TRUSTED_RMS_M)
     launch = False
