@@ -125,16 +125,15 @@ def carried_labels(point_index, cur, pred, gates, speed, dt, slide_share):
 @_jit
 def rigid_check(cur, rpred, spread, swing, labeled, max_swing, check_m):
     """The rigid check of the tracked labels against their partners' predictions (`rigid_predict`): returns
-    has_rigid (M,) (a prediction exists), spread0 (M,) (its spread, 0 where none), steady (M,) (a
-    prediction whose swing is at most max_swing: one that may withdraw a label), err (M,) (a labeled
-    steady marker's distance to its prediction, else 0) and bad (M,) (err over check_m + 4 spread0).
-    Replaces the numpy formulation `has_rigid = isfinite(rpred[:, 0])`, `spread0 = where(has_rigid, spread,
-    0)`, `steady = has_rigid & (swing <= max_swing)`, `err = where(labeled & steady, norm(cur - rpred), 0)`,
-    `bad = labeled & steady & (err > check_m + 4 spread0)`. (tracker.step, 2.)"""
+    has_rigid (M,) (a prediction exists), spread0 (M,) (its spread, 0 where none), err (M,) (a labeled
+    marker's distance to a steady prediction, one whose swing is at most max_swing and so may withdraw a
+    label; else 0) and bad (M,) (err over check_m + 4 spread0). Replaces the numpy formulation `has_rigid
+    = isfinite(rpred[:, 0])`, `spread0 = where(has_rigid, spread, 0)`, `steady = has_rigid & (swing <=
+    max_swing)`, `err = where(labeled & steady, norm(cur - rpred), 0)`, `bad = labeled & steady & (err >
+    check_m + 4 spread0)`. (tracker.step, 2.)"""
     m = cur.shape[0]
     has_rigid = np.zeros(m, np.bool_)
     spread0 = np.zeros(m)
-    steady = np.zeros(m, np.bool_)
     err = np.zeros(m)
     bad = np.zeros(m, np.bool_)
     for i in range(m):
@@ -142,11 +141,10 @@ def rigid_check(cur, rpred, spread, swing, labeled, max_swing, check_m):
             continue
         has_rigid[i] = True
         spread0[i] = spread[i]
-        steady[i] = swing[i] <= max_swing
-        if labeled[i] and steady[i]:
+        if labeled[i] and swing[i] <= max_swing:
             err[i] = math.sqrt(_dist2(cur, i, rpred, i))
             bad[i] = err[i] > check_m + 4.0 * spread0[i]
-    return has_rigid, spread0, steady, err, bad
+    return has_rigid, spread0, err, bad
 
 
 @_jit
@@ -953,7 +951,7 @@ def warm_up() -> float:
     labeled = np.ones(m, bool)
     rows = np.arange(m, dtype=np.int64)
     pred, spread, swing = rigid_predict(partners, snap, stats, pos, labeled, labeled)
-    has_rigid, spread0, _, err, _ = rigid_check(pos, pred, spread, swing, labeled, 0.01, 0.006)
+    has_rigid, spread0, err, _ = rigid_check(pos, pred, spread, swing, labeled, 0.01, 0.006)
     unswap(rows.copy(), pos.copy(), pred, err, 0.006)
     far_from_fit(pred, pos, labeled, labeled, partners, rows, 0.1, 0.2)
     distance_misfit(partners, stats, stats, stats, pos, labeled, rows)

@@ -1880,9 +1880,9 @@ def step(
     #    of two close markers, a ghost caught while the marker hid) is withdrawn and re-assigned below.
     # (the full checks are spread over frames by marker index, so no frame carries them all: a flat p99)
     rpred, spread, swing = rigid_predictions(st, cur, labeled, check)
-    # (steady: a prediction that may withdraw a tracked label; bad: a label it withdraws)
-    has_rigid, spread0, steady, err, bad = kernels.rigid_check(cur, rpred, spread, swing, labeled, RIGID_MAX_SWING_M,
-                                                               config.rigid_check_m)
+    # (bad: a label its partners' prediction withdraws)
+    has_rigid, spread0, err, bad = kernels.rigid_check(cur, rpred, spread, swing, labeled, RIGID_MAX_SWING_M,
+                                                       config.rigid_check_m)
     changed = _unswap(point_index, cur, rpred, err, config.rigid_check_m)
     if st.frames % REPAIR_EVERY_FRAMES == REPAIR_EVERY_FRAMES // 2:
         _repair_by_distances(st, point_index, cur, points, ~taken)
@@ -1891,8 +1891,8 @@ def step(
         changed = True
     if changed:  # (else every label and its error stand as computed)
         labeled = point_index >= 0
-        _, _, _, err, bad = kernels.rigid_check(cur, rpred, spread, swing, labeled, RIGID_MAX_SWING_M,
-                                                config.rigid_check_m)
+        _, _, err, bad = kernels.rigid_check(cur, rpred, spread, swing, labeled, RIGID_MAX_SWING_M,
+                                             config.rigid_check_m)
     if bad.any():  # (few: computed on those only)
         rows = np.flatnonzero(bad)
         tol = config.rigid_check_m + 4.0 * spread0[rows]

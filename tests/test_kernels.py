@@ -413,7 +413,7 @@ def test_rigid_check_and_far_from_fit_match_the_numpy_formulation():
         with np.errstate(invalid="ignore"):
             steady = has_rigid & (swing <= 0.01)
         err = np.where(labeled & steady, np.linalg.norm(cur - rpred, axis=1), 0.0)
-        for a, b in zip(got, (has_rigid, spread0, steady, err, labeled & steady & (err > 0.012 + 4.0 * spread0))):
+        for a, b in zip(got, (has_rigid, spread0, err, labeled & steady & (err > 0.012 + 4.0 * spread0))):
             np.testing.assert_allclose(a, b, rtol=1e-12)
         partners = np.array([rng.permutation(np.delete(np.arange(m), i))[:5] for i in range(m)])
         partners[rng.random(partners.shape) < 0.2] = -1
