@@ -865,8 +865,17 @@ def world_transforms(t_root: np.ndarray, R_parent_segment: np.ndarray, joint_off
 # thigh). Never farther in toward the trunk: a hand held against the chest for the window is carried by the
 # chest about as well as by its forearm, and moved there it broke the fit as soon as the hand moved away
 # (CMU 135_02 at L3: two hand markers went to the trunk and the fit stayed 10-20 cm off for 2 s).
+# And only across a joint that turned by REASSIGN_MIN_TURN_RAD (RMS over the window) or more: where the joint
+# hardly moved, the segment on its other side carries the marker about as still, and a frame solved a little
+# off (a thorax turned by shoulder markers riding the shoulder blades) makes it look stiller. Across a neck
+# turned 6 degrees a clavicle, sternum and acromion went to the head, and across an ankle turned 4 degrees a
+# fifth metatarsal to the shank, where the foot's heel and toe, alone, were then re-found swapped and kept
+# so for 2000 frames (HDM05 at L3). (Dev suite, 18 realizations: L3 98.439 -> 98.495 %, that run 91.4 ->
+# 96.0 %; L2 99.320 -> 99.315 %: in two runs of 135_02 the changed model led the fit another way, and a
+# wrist pair swapped there.)
 REASSIGN_MIN_SHARE = 0.5
 REASSIGN_FAR_M = 0.01
+REASSIGN_MIN_TURN_RAD = 0.14
 
 
 def _ancestors(k: int) -> set[int]:
@@ -884,9 +893,9 @@ DESCENDANT = np.array([[a in _ancestors(b) for b in range(len(PARENTS))] for a i
 def reassign(positions_m: np.ndarray, Rs_world: np.ndarray, ps_world: np.ndarray, marker_segment: np.ndarray) -> np.ndarray:
     """Move each marker to the segment that carries it best over F solved frames: the segment in whose frame
     the marker stays most still (RMS about its mean offset) among its own, those joined to it and those that
-    carry it within REASSIGN_FAR_M, if that is under 70 % of its current segment's and the current one is
-    off by more than 5 mm. Motion is what tells segments apart; in a still pose every choice fits, and
-    none moves."""
+    carry it within REASSIGN_FAR_M, if that is under 70 % of its current segment's, the current one is off
+    by more than 5 mm, and the two segments turned against each other by REASSIGN_MIN_TURN_RAD or more.
+    Motion is what tells segments apart; in a still pose every choice fits, and none moves."""
     local = np.einsum("fsji,fmsj->fmsi", Rs_world, positions_m[:, :, None, :] - ps_world[:, None, :, :])  # (F, M, S, 3)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # markers never seen in the window: all-NaN columns
@@ -900,8 +909,20 @@ def reassign(positions_m: np.ndarray, Rs_world: np.ndarray, ps_world: np.ndarray
     best = np.nanargmin(np.where(np.isfinite(spread), spread, np.inf), axis=1)
     better = np.isfinite(spread[m, best]) & (spread[m, best] < 0.7 * spread[m, out]) & (spread[m, out] > 0.005)
     better &= np.isfinite(positions_m[..., 0]).sum(0) >= REASSIGN_MIN_SHARE * len(positions_m)
+    for i in np.flatnonzero(better):
+        better[i] = _turn_rms(Rs_world[:, out[i]], Rs_world[:, best[i]]) >= REASSIGN_MIN_TURN_RAD
     out[better] = best[better]
     return out
+
+
+def _turn_rms(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    """RMS angle [rad] by which segment b turned relative to segment a about their mean relative rotation,
+    over F frames of world rotations Ra, Rb (F, 3, 3): how much their joint articulated."""
+    rel = np.einsum("fji,fjk->fik", Ra, Rb)
+    U, _, Vt = np.linalg.svd(rel.mean(0))
+    mean = U @ Vt
+    cos = (np.einsum("fij,ij->f", rel, mean) - 1.0) / 2.0
+    return float(np.sqrt(np.mean(np.arccos(np.clip(cos, -1.0, 1.0)) ** 2)))
 
 
 def refine(

@@ -333,6 +333,36 @@ def test_reassign_moves_a_marker_only_to_a_segment_that_carries_it():
     assert got == ["l_forearm", "l_foot", "l_foot", "r_forearm"]
 
 
+def test_reassign_moves_a_marker_across_a_joint_only_once_the_joint_has_turned():
+    """A sternum marker rides a thorax whose solved frame wobbles (the shoulders' markers, which ride the
+    shoulder blades, turn it by a few degrees), under a neck that hardly turned in the window: the head's
+    frame carries it stiller than the torso's own, yet that tells nothing, and it stays on the torso (it
+    went to the head, with the clavicle and an acromion, and the fit broke when the head turned: HDM05 at
+    L3). Once the neck has turned by 20 degrees, a marker that rides the head is moved there."""
+    from service.calibration import S, reassign, world_transforms
+
+    rng = np.random.default_rng(5)
+    F = 40
+    joints = rng.normal(0.0, 0.2, (N_SEGMENTS, 3))
+    offset = np.array([0.12, 0.0, -0.1])
+
+    def window(neck_sd_rad, wobble_sd_rad, rides):
+        """(the marker riding segment `rides`, solved Rs, ps): the head turned on the torso by the neck, the
+        torso's solved frame wobbling about its true one."""
+        R = np.tile(np.eye(3), (F, N_SEGMENTS, 1, 1))
+        R[:, S["pelvis"]] = Rotation.from_rotvec(rng.normal(0.0, 1.0, (F, 3))).as_matrix()
+        R[:, S["head"]] = Rotation.from_rotvec(rng.normal(0.0, neck_sd_rad, (F, 3))).as_matrix()
+        Rs, ps = world_transforms(rng.normal(0.0, 1.0, (F, 3)), R, joints)
+        k = S[rides]
+        marker = ps[:, k] + np.einsum("fij,j->fi", Rs[:, k], offset) + rng.normal(0.0, 0.001, (F, 3))
+        Rs[:, S["torso"]] = Rs[:, S["torso"]] @ Rotation.from_rotvec(rng.normal(0.0, wobble_sd_rad, (F, 3))).as_matrix()
+        return marker[:, None], Rs, ps
+
+    torso = np.array([S["torso"]])
+    assert SEGMENTS[reassign(*window(0.01, 0.05, "torso"), torso)[0]] == "torso"
+    assert SEGMENTS[reassign(*window(0.35, 0.0, "head"), torso)[0]] == "head"
+
+
 def _seed_calibration(file: str, subject: str, level: str, seed: int) -> dict[str, str]:
     """{marker: segment} of a subject calibrated from the 2 s seed of a real recording (benchmark corruption),
     the labeled history the engine calibrates from."""
