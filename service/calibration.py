@@ -206,6 +206,7 @@ def _seg_dist(q, a, b):
 def calibrate(
     positions_m: np.ndarray, history_m: np.ndarray | None = None, distance_sd: np.ndarray | None = None,
     feet_of: np.ndarray | None = None, votes: list | None = None, mirror_of: np.ndarray | None = None,
+    given: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Skeleton of an upright subject from one frame of its markers (M, 3; NaN = unseen, filled by caller).
     With `history_m` (F, M, 3) showing motion, markers whose nearest bones are close calls go to the
@@ -213,7 +214,9 @@ def calibrate(
     `distance_sd`, the history's `_distance_sd` if the caller has it. `feet_of`, the marker segments of a
     first calibration of the same frame: its feet keep their markers, and the legs run to where they stand.
     `votes`, the history's `heading_votes` if the caller has them. `mirror_of`, each marker's named twin
-    (`mirror_index`): with a history, twins are then put on mirror segments (`_mirror_pairs`).
+    (`mirror_index`): with a history, twins are then put on mirror segments (`_mirror_pairs`). `given`: the
+    marker segments to take instead of this frame's own (`calibrate_from_history`'s medoid), twins still
+    mended; the frame gives the skeleton and the offsets.
 
     Returns (marker_segment (M,), marker_offsets_m (M, 3), joint_offsets_m (14, 3), t_world_root_m (3,),
     R_parent_segment (14, 3, 3)) — the calibration pose is the model's zero pose.
@@ -320,10 +323,13 @@ def calibrate(
     if feet_of is not None:  # the first pass's feet keep their markers (a heel raised mid-stride is not shank)
         on_feet = np.isin(feet_of, [S["l_foot"], S["r_foot"]])
         marker_segment[on_feet] = feet_of[on_feet]
+    if given is not None:
+        marker_segment = given.copy()
     if history_m is not None and len(history_m) >= 10:
         sd = _distance_sd(history_m) if distance_sd is None else distance_sd
-        marker_segment = _by_rigidity(marker_segment, cost, history_m, bone_cost, sd=sd)
-        marker_segment = _uncross_sides(marker_segment, sd)
+        if given is None:
+            marker_segment = _by_rigidity(marker_segment, cost, history_m, bone_cost, sd=sd)
+            marker_segment = _uncross_sides(marker_segment, sd)
         if mirror_of is not None:
             marker_segment = _mirror_pairs(_mirror_segments(marker_segment, mirror_of), sd, mirror_of, bone_cost)
     joints_world = np.stack([J[n] for n in SEGMENTS]) * h @ bf.R_world_body.T + bf.origin_m
@@ -628,6 +634,18 @@ def fill_reference(history_m: np.ndarray, n_near: int = 5, frame: int | None = N
 # clearly better (its score under CANDIDATE_GAIN times the first's).
 CANDIDATE_FRAMES = 4
 CANDIDATE_GAIN = 0.35
+# The frames' calibrations vote, too: the marker segments of the one that agrees most with the others
+# (`_medoid`) are taken, on the chosen frame's skeleton and offsets, if that scores within MEDOID_SCORE_SLACK
+# of the chosen calibration and leaves no more named twins apart (`_twins_apart`). The score hardly tells a
+# heel on the shank from one on the foot (a dribbling player's ankles bent little in the seed: the fullest
+# frame, a heel raised, put both heels and ankles on the shanks, four frames on the feet). A majority can be
+# wrong too: with a hand resting on the hip, three frames of four put the pelvis's markers on the forearm and
+# the hand's on the pelvis, which the twins tell (the hips' markers on one forearm). (Seed calibrations of all
+# labeled files, L2/L3, 18 seeds, `benchmarks.skeleton`: markers off their named segment 748 -> 656 of
+# 13644; cmu/07_01 39 -> 6, two players 16 -> 2. Dev suite: L3 98.495 -> 98.524 %, the dribbling player's
+# worst run 90.0 -> 94.6 %; L2 99.315 -> 99.317 %.)
+MEDOID_MIN_FRAMES = 3
+MEDOID_SCORE_SLACK = 2.0
 
 
 def lopsided(marker_segment: np.ndarray) -> bool:
@@ -653,7 +671,8 @@ def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None =
     a seed held still lets an arm's markers move as one. In the two-player tennis recording a forearm's
     markers went to the upper arm, or to the upper arm and pelvis, in 2 of 36 seed calibrations at L2; over
     the 36, 39 markers were off their segment, 8 now (all files, 18 realizations: 880 -> 748 of 13644; dev
-    suite: L3 98.410 -> 98.439 %, two players at L3 98.06 -> 98.26 %, 9 runs up, 1 down). Markers never
+    suite: L3 98.410 -> 98.439 %, two players at L3 98.06 -> 98.26 %, 9 runs up, 1 down). The frames then
+    vote on each marker's segment (`_medoid`, see MEDOID_SCORE_SLACK). Markers never
     seen keep offset zero on whatever segment the calibration left them (nothing is known of them: a
     refinement, `engine.refined_model`, moves them once they are seen and the fit suffers). With `mirror_of` (each
     marker's named twin, `mirror_index`), the chosen calibration is made again with its twins mended
@@ -666,10 +685,11 @@ def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None =
     sd = _distance_sd(history_m)
     votes = heading_votes(history_m) if len(history_m) >= 10 else None  # (as `calibrate` would, once)
 
-    def attempt(ref: np.ndarray, feet_of: np.ndarray | None, mirror: np.ndarray | None):  # (score, result)
+    def attempt(ref: np.ndarray, feet_of: np.ndarray | None, mirror: np.ndarray | None,
+                given: np.ndarray | None = None):  # (score, result)
         ok = np.isfinite(ref[:, 0])
         seg, off, joints, t_root, R = calibrate(np.where(ok[:, None], ref, np.nan), history_m, sd, feet_of, votes,
-                                                mirror)
+                                                mirror, given)
         off = np.where(ok[:, None], off, 0.0)  # never seen: at the segment's origin (see above)
         layout = layout_residuals(history_m, seg, off)
         with warnings.catch_warnings():
@@ -678,6 +698,7 @@ def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None =
         return (score if np.isfinite(score) else np.inf), (seg, off, joints, t_root, R, layout)
 
     best, best_score, first_score, best_args, best_lop = None, np.inf, np.inf, None, False
+    tried = []  # (score, result, args, lopsided) of each frame
     for i in [first, *sorted(set(others.tolist()) - {first})]:
         ref = fill_reference(history_m, frame=i)
         score, result, feet_of, args = np.inf, None, None, None
@@ -694,16 +715,45 @@ def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None =
         if best is None:
             first_score = score
         lop = lopsided(result[0])
+        tried.append((score, result, args, lop))
         better = score < best_score and score < CANDIDATE_GAIN * first_score
         if best is None or (best_lop and not lop) or (lop == best_lop and better):
             best, best_score, best_args, best_lop = result, score, args, lop
+    medoid, given = _medoid(tried, best_lop), None
+    if medoid is not None and (medoid[1][0] != best[0]).any() and _twins_apart(medoid[1][0], mirror_of) <= _twins_apart(best[0], mirror_of):
+        # the medoid's segments on the chosen frame's skeleton and offsets (the fullest frame's: a frame with
+        # a marker hidden leaves its offset unknown)
+        score, result = attempt(*best_args, None, medoid[1][0])
+        if score <= MEDOID_SCORE_SLACK * best_score and (best_lop or not lopsided(result[0])):
+            best, best_score, given = result, score, medoid[1][0]
     if best is not None and mirror_of is not None and (mirror_of >= 0).any():
         # named twins mended on the chosen calibration only (mended, a poor frame's calibration scored
         # close enough to a good one's to keep it: the tennis player's wrists stayed on the thighs)
-        score, result = attempt(*best_args, mirror_of)
+        score, result = attempt(*best_args, mirror_of, given)
         if score <= MIRROR_SCORE_SLACK * best_score and (best_lop or not lopsided(result[0])):
             best = result
     return best
+
+
+def _twins_apart(marker_segment: np.ndarray, mirror_of: np.ndarray | None) -> int:
+    """How many markers with a named twin (`mirror_index`) are not on the mirror image of its segment (0
+    without names)."""
+    if mirror_of is None:
+        return 0
+    has = np.flatnonzero(mirror_of >= 0)
+    return int(np.count_nonzero(MIRROR_SEGMENT[marker_segment[has]] != marker_segment[mirror_of[has]]))
+
+
+def _medoid(tried: list, lop_allowed: bool):
+    """Of the frames' calibrations `tried` ((score, result, args, lopsided), lopsided ones only if
+    `lop_allowed`), the one whose marker segments agree most with the others' (markers on the same segment,
+    summed over them), or None with fewer than MEDOID_MIN_FRAMES."""
+    tried = [t for t in tried if lop_allowed or not t[3]]
+    if len(tried) < MEDOID_MIN_FRAMES:
+        return None
+    segs = np.stack([t[1][0] for t in tried])  # (C, M)
+    agree = (segs[:, None, :] == segs[None, :, :]).sum(axis=(1, 2))
+    return tried[int(np.argmax(agree))]
 
 
 def articulation_error(ref: np.ndarray, history_m: np.ndarray, marker_segment: np.ndarray, joint_offsets_m: np.ndarray,

@@ -400,6 +400,38 @@ def test_hands_resting_on_the_hips_stay_on_the_forearms(level, seed):
     assert {k: got[k] for k in want} == want
 
 
+def test_the_medoid_is_the_calibration_most_others_agree_with():
+    """`_medoid`: of four frames' calibrations, the one whose segments the others share most; lopsided ones
+    (a forearm left empty) only when every choice is; none from fewer than three frames."""
+    from service.calibration import _medoid
+
+    def tried(segs, lop=False):
+        return (1.0, (np.array(segs),), None, lop)
+
+    one_off = tried([9, 9, 10, 10])  # a heel and an ankle on the shank
+    agreeing = [tried([10, 10, 10, 10]), tried([10, 10, 10, 10]), tried([10, 10, 9, 10], lop=True)]
+    assert _medoid([one_off, *agreeing], lop_allowed=False) is agreeing[0]
+    assert _medoid([one_off, agreeing[2], *agreeing[:2]], lop_allowed=True) is agreeing[0]
+    assert _medoid([one_off, *agreeing], lop_allowed=False)[3] is False
+    assert _medoid([one_off, agreeing[0]], lop_allowed=False) is None
+
+
+@pytest.mark.parametrize("file, subject, level, seed", [
+    ("cmu/07_01.c3d", "liu", "L2", 7),  # the fullest frame put both heels on the shanks
+    ("cmu/07_01.c3d", "liu", "L2", 16),  # ... the legs' markers crossed, left on right
+    ("cmu/cmu_dribble_shoot_basketball.c3d", "Justin", "L3", 16),  # ... heels and ankles on the shanks
+])
+def test_a_seed_calibration_takes_what_most_of_its_frames_agree_on(file, subject, level, seed):
+    """Real data: seeds whose fullest frame calibrated the legs wrong where the other frames calibrated them
+    right (a walker mid-stride, a dribbling player with a heel raised), and whose scores could not tell
+    (ankles that bent little in the seed). The frames' calibrations vote (`_medoid`): every leg marker on
+    its segment."""
+    from benchmarks.skeleton import misplaced
+
+    _, off = misplaced(_seed_calibration(file, subject, level, seed))
+    assert [m for m in off if m[1:4] in ("HEE", "TOE", "MT5", "SHN", "THI")] == []
+
+
 @pytest.mark.parametrize("file, subject, level, seed", [
     ("cmu/07_01.c3d", "liu", "L3", 3),  # walking: a heel-strike frame's "foot" spanned both feet
     ("cmu/85_12.c3d", "Male", "L3", 3),  # toe markers hidden: the heel voted for the toe
