@@ -320,11 +320,11 @@ def calibrate(
             k = marker_segment[near[0]]
             if k in arm_segs and np.all(marker_segment[near] == k) and d[near[-1]] < d[marker_segment == own].min(initial=np.inf):
                 marker_segment[i] = k
-    if feet_of is not None:  # the first pass's feet keep their markers (a heel raised mid-stride is not shank)
-        on_feet = np.isin(feet_of, [S["l_foot"], S["r_foot"]])
-        marker_segment[on_feet] = feet_of[on_feet]
     if given is not None:
         marker_segment = given.copy()
+    elif feet_of is not None:  # the first pass's feet keep their markers (a heel raised mid-stride is not shank)
+        on_feet = np.isin(feet_of, [S["l_foot"], S["r_foot"]])
+        marker_segment[on_feet] = feet_of[on_feet]
     if history_m is not None and len(history_m) >= 10:
         sd = _distance_sd(history_m) if distance_sd is None else distance_sd
         if given is None:
