@@ -219,8 +219,8 @@ def reacquire_gates(rpred, has_rigid, spread0, stale, missing, skel, use_fit, fi
     """Where to look for each hidden marker (`missing`), and how far: returns pred (M, 3) (NaN: nowhere),
     gate (M,) (0 for markers not missing) and use_skel (M,) (placed by the fit). Rigid partners place a
     marker, gate 0.8 gate_m + 3 spread0 (at most cap_m); with `use_fit`, the fit's `skel` places those
-    partners cannot, and, when the fit is trusted, those whose partners are loose (spread0 over loose_m)
-    or `stale`, gate gate_m widened by the time hidden (1 + hidden dt / widen_s, at most max_widen).
+    partners cannot, and, where the fit is trusted (`fit_trusted` (M,)), those whose partners are loose
+    (spread0 over loose_m) or `stale`, gate gate_m widened by the time hidden (1 + hidden dt / widen_s, at most max_widen).
     Replaces the numpy formulation `pred = where(has_rigid, rpred, nan)`, `gate = where(has_rigid,
     minimum(0.8 gate_m + 3 spread0, cap_m), 0)`, `loose = has_rigid & ((spread0 > loose_m) | stale) &
     fit_trusted`, `use_skel = missing & (~has_rigid | loose)` (with `use_fit`), `pred[use_skel] =
@@ -236,7 +236,7 @@ def reacquire_gates(rpred, has_rigid, spread0, stale, missing, skel, use_fit, fi
                 for c in range(3):
                     pred[i, c] = rpred[i, c]
             continue
-        loose = has_rigid[i] and (spread0[i] > loose_m or stale[i]) and fit_trusted
+        loose = has_rigid[i] and (spread0[i] > loose_m or stale[i]) and fit_trusted[i]
         if use_fit and (not has_rigid[i] or loose):
             use_skel[i] = True
             for c in range(3):
@@ -252,15 +252,15 @@ def reacquire_gates(rpred, has_rigid, spread0, stale, missing, skel, use_fit, fi
 @_jit
 def frame_outcome(point_index, reacquired, cur, has_rigid, rpred, coast, skel, use_fit, ever_seen, spread0, stale,
                   loose_m, fit_trusted):
-    """The frame's outcome for a subject (labeled: point_index >= 0): source (M,) int8 (0 none, 1 tracked,
-    2 re-acquired), fallback (M, 3) (where the state puts an unlabeled marker: its partners' prediction,
-    else the fit's with `use_fit`, else `coast`), predicted (M, 3) (a labeled marker at its fit position
-    with `use_fit`, else at its point; the others at fallback), and whether the fit is wanted (a hidden
-    marker no partners place, or whose partners are loose while the fit is trusted, or stale). Replaces the
-    numpy formulation `fallback = where(has_rigid, rpred, coast)`, `fallback = where(~has_rigid, skel,
-    fallback)` (use_fit), `predicted = where(labeled, skel if use_fit else cur, fallback)`, `source =
-    where(labeled, where(reacquired, 2, 1), 0)`, `(~labeled & ever_seen & (~has_rigid | (spread0 > loose_m)
-    & fit_trusted | stale)).any()`. (tracker.step, 6. and 7.)"""
+    """The frame's outcome for a subject (labeled: point_index >= 0): source (M,) int8 (0 none, 1 tracked, 2
+    re-acquired), fallback (M, 3) (where the state puts an unlabeled marker: its partners' prediction, else the
+    fit's with `use_fit`, else `coast`), predicted (M, 3) (a labeled marker at its fit position with `use_fit`,
+    else at its point; the others at fallback), and whether the fit is wanted (a hidden marker no partners place,
+    or whose partners are loose where the fit is trusted (`fit_trusted` (M,)), or stale). Replaces the numpy
+    formulation `fallback = where(has_rigid, rpred, coast)`, `fallback = where(~has_rigid, skel, fallback)`
+    (use_fit), `predicted = where(labeled, skel if use_fit else cur, fallback)`, `source = where(labeled,
+    where(reacquired, 2, 1), 0)`, `(~labeled & ever_seen & (~has_rigid | (spread0 > loose_m) & fit_trusted |
+    stale)).any()`. (tracker.step, 6. and 7.)"""
     m = cur.shape[0]
     source = np.zeros(m, np.int8)
     fallback = np.empty((m, 3))
@@ -270,7 +270,7 @@ def frame_outcome(point_index, reacquired, cur, has_rigid, rpred, coast, skel, u
         labeled = point_index[i] >= 0
         if labeled:
             source[i] = 2 if reacquired[i] else 1
-        elif ever_seen[i] and (not has_rigid[i] or (spread0[i] > loose_m and fit_trusted) or stale[i]):
+        elif ever_seen[i] and (not has_rigid[i] or (spread0[i] > loose_m and fit_trusted[i]) or stale[i]):
             unplaced = True
         for c in range(3):
             if has_rigid[i]:
@@ -965,8 +965,8 @@ def warm_up() -> float:
     idx, _, _, _ = track_labels(pos, rows, rows, labeled, pred, speed, 0.01, m, 0.006, labeled, 1, 3)
     carried_labels(idx, pos, pred, speed, speed, 0.01, 0.5)
     hidden = np.zeros(m, np.int64)
-    reacquire_gates(pred, has_rigid, spread0, labeled, labeled, pos, True, True, hidden, 0.01, 0.05, 0.1, 0.02, 0.5, 2.0)
-    frame_outcome(rows, labeled, pos, has_rigid, pred, pos, pos, True, labeled, spread0, labeled, 0.02, True)
+    reacquire_gates(pred, has_rigid, spread0, labeled, labeled, pos, True, labeled, hidden, 0.01, 0.05, 0.1, 0.02, 0.5, 2.0)
+    frame_outcome(rows, labeled, pos, has_rigid, pred, pos, pos, True, labeled, spread0, labeled, 0.02, labeled)
     commit_motion(pos, pos, pos, labeled, hidden, labeled, pos, labeled, pos, 0.01, 15.0, 500.0)
     snapshot(snap, pos, labeled)
     world_transforms(pos[0], np.broadcast_to(np.eye(3), (m, 3, 3)).copy(), pos, np.arange(-1, m - 1))

@@ -446,7 +446,7 @@ def test_reacquire_gates_and_frame_outcome_match_the_numpy_formulation():
         point_index = np.where(labeled, rng.permutation(m), -1)
         reacquired = labeled & (rng.random(m) < 0.3)
         for use_fit in (False, True):
-            trusted = bool(seed % 3)
+            trusted = rng.random(m) < (0.0, 0.5, 1.0)[seed % 3]  # (per marker: `tracker._trusted_markers`)
             got = kernels.reacquire_gates(rpred, has_rigid, spread0, stale, missing, skel, use_fit, trusted, hidden,
                                           0.01, 0.05, 0.12, 0.004, 0.5, 2.0)
             pred = np.where(has_rigid[:, None], rpred, np.nan)

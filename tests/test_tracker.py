@@ -1642,3 +1642,26 @@ def test_a_label_the_layout_check_takes_off_a_neighbours_point_is_found_where_it
         if f == seed + 10:
             assert got[wrist] == finger  # the wrong label
     assert got[wrist] == wrist and got[finger] == finger
+
+
+def test_a_fit_that_misses_part_of_the_body_is_trusted_on_the_segments_it_places():
+    """A fit whose RMS is over SKELETON_TRUSTED_RMS_M (shoulder markers on the torso with the arms overhead)
+    still places the markers of a segment whose three or more labeled markers sit where it puts them; not
+    those of a segment it misplaces, of one with fewer labeled markers (two leave a turn about their line
+    free), nor of a marker on no segment. Under the threshold it places every marker."""
+    seg = np.array([2, 2, 2, 7, 7, 7, 7, 13, 13, 5, 5, 5, -1])
+    m = len(seg)
+    model = tracker.SubjectModel("P", tuple(f"M{i}" for i in range(m)), seg, np.zeros((m, 3)), np.zeros((14, 3)),
+                                 has_skeleton=True)
+    rng = np.random.default_rng(0)
+    skel = rng.normal(0.0, 0.3, (m, 3))
+    cur = skel + rng.normal(0.0, 0.004, (m, 3))
+    cur[:3] += [0.12, 0.0, 0.0]  # the torso's markers 12 cm off
+    cur[9:12, 2] += [0.03, -0.03, 0.02]  # the left forearm's 2-3 cm off
+    labeled = np.ones(m, bool)
+    labeled[6] = labeled[8] = False  # a hidden wrist marker; the foot has one label
+    cur[~labeled] = np.nan
+    got = tracker._trusted_markers(model, cur, labeled, skel, 0.05)
+    np.testing.assert_array_equal(np.flatnonzero(got), [3, 4, 5, 6])
+    assert tracker._trusted_markers(model, cur, labeled, skel, 0.01).all()
+    assert not tracker._trusted_markers(model, cur, labeled, None, 0.05).any()
