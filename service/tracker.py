@@ -761,6 +761,8 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
         if assignment is None and len(idx) == 2:  # a segment of two: both its markers placed
             assignment = _unambiguous(scored, 0, max(len(idx) - len(lab), 1))
         if assignment is None and len(lab) == 0:
+            assignment = _agreeing_pairs(scored)
+        if assignment is None and len(lab) == 0:
             # the joint could not pin it (its parent moved unseen too, so the joint is where the fit left
             # it: a serving arm's forearm stayed unfound for 0.7 s): its layout alone
             assignment = _search_free_segment(model, pw, points, pool, los, k, observed)
@@ -772,6 +774,33 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
             unfound[list(found)] = False
             pool = pool[~np.isin(pool, list(found.values()))]
     return found
+
+
+def _agreeing_pairs(scored: list) -> dict[int, int] | None:
+    """Markers of a segment none of whose markers is labeled that fit around its joint two at a time but
+    not three at once (a serving hand flexed at the wrist moves the finger marker off its forearm layout by
+    a few centimetres): three or more points every pair of which is a hypothesis of `scored` (n placed,
+    RMS, {marker: point}, ...), if no other such set places as many. {marker: point}, or None. (Two players
+    at L2, seed 3: the forearm's finger, wrist and forearm markers were in view 12 frames, each pair
+    placed alike, and stayed unfound. Dev suite, 18 realizations: 13 runs moved, 12 up; L3 98.536 ->
+    98.540 %, L2 unchanged at 99.324 %.)"""
+    pairs = [a for n, _, a, *_ in scored if n == 2 and len(a) == 2]
+    have = {frozenset(a.items()) for a in pairs}
+    sets = set()
+    for seed in pairs:
+        merged = dict(seed)
+        for q in pairs:
+            new = [(i, p) for i, p in q.items() if i not in merged]
+            if len(new) == 1 and _agrees(merged, q) and all(
+                    frozenset({new[0], (j, pj)}) in have for j, pj in merged.items()):
+                merged[new[0][0]] = new[0][1]
+        if len(merged) >= 3:
+            sets.add(frozenset(merged.items()))
+    if not sets:
+        return None
+    most = max(len(x) for x in sets)
+    best = [x for x in sets if len(x) == most]
+    return dict(best[0]) if len(best) == 1 else None
 
 
 def _around_joint(model: SubjectModel, o: np.ndarray, lab: np.ndarray, los: np.ndarray, cur: np.ndarray,

@@ -1665,3 +1665,39 @@ def test_a_fit_that_misses_part_of_the_body_is_trusted_on_the_segments_it_places
     np.testing.assert_array_equal(np.flatnonzero(got), [3, 4, 5, 6])
     assert tracker._trusted_markers(model, cur, labeled, skel, 0.01).all()
     assert not tracker._trusted_markers(model, cur, labeled, None, 0.05).any()
+
+
+def test_agreeing_pairs_place_three_markers_only_as_one_unrivalled_set():
+    pairs = [(2, 0.006, {0: 10, 1: 11}), (2, 0.007, {0: 10, 2: 12}), (2, 0.01, {1: 11, 2: 12})]
+    assert tracker._agreeing_pairs(list(pairs)) == {0: 10, 1: 11, 2: 12}
+    assert tracker._agreeing_pairs(pairs[:2]) is None  # markers 1 and 2 never placed together
+    rival = [(2, 0.006, {0: 20, 1: 21}), (2, 0.007, {0: 20, 2: 22}), (2, 0.01, {1: 21, 2: 22})]
+    assert tracker._agreeing_pairs(pairs + rival) is None
+    assert tracker._agreeing_pairs(pairs + rival[:2]) == {0: 10, 1: 11, 2: 12}
+
+
+@pytest.mark.parametrize("off_mm", [0, 25])
+def test_a_lost_forearm_one_of_whose_markers_left_its_layout_is_found_by_its_agreeing_pairs(off_mm):
+    """A forearm turned 80 degrees at the elbow while unlabeled comes back with three of its four markers
+    in view, one moved 25 mm off the layout (on its sphere about the elbow: skin, or a hand flexed at the
+    wrist): the three no longer fit the layout at once (they were not found before `_agreeing_pairs`),
+    but every two of them do, alike, and they are found."""
+    from protocol.skeleton import SEGMENTS
+    from service.calibration import world_transforms
+
+    rng = np.random.default_rng(3)
+    perf, model, st, old, now, _ = _turned_unseen(rng, {"r_forearm": ("y", 80)})
+    k = SEGMENTS.index("r_forearm")
+    forearm = np.flatnonzero(perf.marker_segment == k)
+    hidden, moved = forearm[1], forearm[0]
+    _, pw = world_transforms(st.t_root_m, st.R_parent_segment, perf.joint_offsets_m)
+    radial = now[moved] - pw[k]
+    side = np.cross(radial, [0.0, 0.0, 1.0])
+    points = now.copy()
+    points[moved] += off_mm * 1e-3 * side / np.linalg.norm(side)
+    in_view = np.arange(len(now)) != hidden
+    labeled = ~np.isin(np.arange(len(now)), forearm)
+    cur = np.where(labeled[:, None], points, np.nan)
+    free = np.isin(np.arange(len(now)), forearm) & in_view
+    found = tracker._search_segments(model, st, points, free, labeled, cur, ~labeled & (perf.marker_segment == k))
+    assert found == {int(i): int(i) for i in forearm if i != hidden}
