@@ -1864,7 +1864,8 @@ def _trusted_markers(model: SubjectModel, cur: np.ndarray, labeled: np.ndarray, 
     Two labeled markers leave the segment's turn about their line free, and a symmetric wrist pair fits
     its swap as well (with two, 135_02 at L3 lost 0.2 % to long wrist swaps).
     (Dev suite, 18 realizations: L2 99.317 -> 99.322 %, L3 98.524 -> 98.533 %; two players at L2 99.41 ->
-    99.44 %.)"""
+    99.44 %. A segment held to 10 or 25 mm instead: L2 99.319 / 99.318 %, L3 98.535 / 98.537 %, against
+    99.324 / 98.540 % at 15 mm, with the later changes.)"""
     m = model.n_markers
     if rms < SKELETON_TRUSTED_RMS_M:
         return np.ones(m, bool)
