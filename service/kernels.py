@@ -220,7 +220,8 @@ def reacquire_gates(rpred, has_rigid, spread0, stale, missing, skel, use_fit, fi
     gate (M,) (0 for markers not missing) and use_skel (M,) (placed by the fit). Rigid partners place a
     marker, gate 0.8 gate_m + 3 spread0 (at most cap_m); with `use_fit`, the fit's `skel` places those
     partners cannot, and, where the fit is trusted (`fit_trusted` (M,)), those whose partners are loose
-    (spread0 over loose_m) or `stale`, gate gate_m widened by the time hidden (1 + hidden dt / widen_s, at most max_widen).
+    (spread0 over loose_m) or `stale`, gate gate_m widened by the time hidden (1 + hidden dt / widen_s, at
+    most max_widen).
     Replaces the numpy formulation `pred = where(has_rigid, rpred, nan)`, `gate = where(has_rigid,
     minimum(0.8 gate_m + 3 spread0, cap_m), 0)`, `loose = has_rigid & ((spread0 > loose_m) | stale) &
     fit_trusted`, `use_skel = missing & (~has_rigid | loose)` (with `use_fit`), `pred[use_skel] =

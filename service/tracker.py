@@ -170,6 +170,7 @@ CHAIN_MIN_MARKERS = 5  # (counting the segment's labeled markers)
 #: ... and so is a segment with this many markers labeled or fewer: one labeled marker and the joint leave
 #: it free to turn about them (a shank: its knee marker labeled, its ankle marker lost with the foot)
 CHAIN_MAX_LABELED = 1
+AGREEING_PAIRS_MAX = 24  # `_agreeing_pairs` weighs at most this many pair hypotheses (typically 1-10)
 CHAIN_JOINT_TOL_M = 0.06  # ... the segment's markers within this of their distance from its joint
 RIVAL_JOINT_MARGIN_M = 0.05  # a search's points stay unassigned if a rival segment's joint fits within this of its own
 SHAPE_EVERY_FRAMES = 4  # segment layouts are checked on every this many frames
@@ -784,7 +785,10 @@ def _agreeing_pairs(scored: list) -> dict[int, int] | None:
     at L2, seed 3: the forearm's finger, wrist and forearm markers were in view 12 frames, each pair
     placed alike, and stayed unfound. Dev suite, 18 realizations: 13 runs moved, 12 up; L3 98.536 ->
     98.540 %, L2 unchanged at 99.324 %.)"""
-    pairs = [a for n, _, a, *_ in scored if n == 2 and len(a) == 2]
+    # (the search is quadratic in the pairs: the best-fitting few only, as a crowded frame's hundreds
+    # would cost milliseconds)
+    best_first = sorted((h for h in scored if h[0] == 2 and len(h[2]) == 2), key=lambda h: h[1])
+    pairs = [h[2] for h in best_first[:AGREEING_PAIRS_MAX]]
     have = {frozenset(a.items()) for a in pairs}
     sets = set()
     for seed in pairs:
