@@ -720,7 +720,8 @@ def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None =
         if best is None or (best_lop and not lop) or (lop == best_lop and better):
             best, best_score, best_args, best_lop = result, score, args, lop
     medoid, given = _medoid(tried, best_lop), None
-    if medoid is not None and (medoid[1][0] != best[0]).any() and _twins_apart(medoid[1][0], mirror_of) <= _twins_apart(best[0], mirror_of):
+    if (medoid is not None and (medoid[1][0] != best[0]).any()
+            and _twins_apart(medoid[1][0], mirror_of) <= _twins_apart(best[0], mirror_of)):
         # the medoid's segments on the chosen frame's skeleton and offsets (the fullest frame's: a frame with
         # a marker hidden leaves its offset unknown)
         score, result = attempt(*best_args, None, medoid[1][0])
