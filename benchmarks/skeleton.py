@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import re
 import sys
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -37,13 +36,26 @@ _LIMB_STEMS = {
 }
 _TRUNK_STEMS = {"FHD": "head", "BHD": "head", "FWT": "pelvis", "BWT": "pelvis", "ASI": "pelvis", "PSI": "pelvis"}
 _TORSO = {"C7", "T10", "CLAV", "STRN", "RBAC", "RBAK"}
+#: numediart's Qualisys set (03_rolling): every name starts with L, then the side (LL_TH1, LRUA2, LR-SK1);
+#: its acromions (AC), epicondyles (HLE, HME, FLE, FME), trochanters (FTC) and malleoli are not judged
+_NUMEDIART_STEMS = {
+    "FHD": "head", "BHD": "head", "UA": "upperarm", "RSP": "forearm", "USP": "forearm", "HM": "forearm",
+    "HL": "forearm", "F": "forearm", "IPS": "pelvis", "IAS": "pelvis", "TH": "thigh", "SK": "shank",
+    "FCC": "foot", "FM": "foot",
+}
+_NUMEDIART_TORSO = {"LCLAV", "LSTRN", "LCV7", "LTV10"}
 
 
 def expected_segment(name: str) -> str | None:
     """The segment a marker named `name` ("Subject:LWRA" or "LWRA") belongs on, or None if not judged."""
     marker = name.rpartition(":")[2].upper()
-    if marker in _TORSO:
+    if marker in _TORSO or marker in _NUMEDIART_TORSO:
         return "torso"
+    m = re.fullmatch(r"L([LR])[_-]?([A-Z]+?)\d*", marker)
+    if m is not None and m.group(2) in _NUMEDIART_STEMS:
+        side, stem = m.groups()
+        segment = _NUMEDIART_STEMS[stem]
+        return segment if segment in ("head", "pelvis") else ("l_" if side == "L" else "r_") + segment
     m = re.fullmatch(r"([LR])([A-Z0-9]+)", marker)
     if m is None:
         return None
@@ -71,9 +83,9 @@ def residual_summary(rms_mm: np.ndarray) -> str:
 
 def side_crossed(segments: dict[str, str]) -> tuple[int, int]:
     """(judged markers named for a side, those on the other side's segment) of {marker name: segment}."""
-    sided = [(n.rpartition(":")[2][0], s) for n, s in segments.items()
+    sided = [(expected_segment(n)[:2], s) for n, s in segments.items()
              if (expected_segment(n) or "")[:2] in ("l_", "r_")]
-    return len(sided), sum(1 for side, s in sided if s[:2] == ("r_" if side == "L" else "l_"))
+    return len(sided), sum(1 for side, s in sided if s[:2] == ("r_" if side == "l_" else "l_"))
 
 
 def seed_history(seq, subject: str) -> tuple[list[str], np.ndarray]:
@@ -97,9 +109,11 @@ def seed_calibration(seq, subject: str) -> dict[str, str] | None:
     from service.calibration import calibrate_from_history, mirror_index
 
     names, history = seed_history(seq, subject)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # markers never seen in the seed: all-NaN columns
-        result = calibrate_from_history(history, mirror_index([n.partition(":")[2] for n in names]))
+    # the markers the seed shows, as the engine's model has them (one never seen has no segment to judge:
+    # 8 of 03_rolling's 68)
+    seen = np.isfinite(history[..., 0]).any(0)
+    names, history = [n for n, ok in zip(names, seen) if ok], history[:, seen]
+    result = calibrate_from_history(history, mirror_index([n.partition(":")[2] for n in names]))
     return None if result is None else {n: SEGMENTS[k] for n, k in zip(names, result[0])}
 
 

@@ -24,6 +24,7 @@ history says (`_mirror_pairs`).
 from __future__ import annotations
 
 import dataclasses
+import os
 import warnings
 
 import numpy as np
@@ -203,24 +204,10 @@ def _seg_dist(q, a, b):
     return np.linalg.norm(q - (a + t[:, None] * ab), axis=1)
 
 
-def calibrate(
-    positions_m: np.ndarray, history_m: np.ndarray | None = None, distance_sd: np.ndarray | None = None,
-    feet_of: np.ndarray | None = None, votes: list | None = None, mirror_of: np.ndarray | None = None,
-    given: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Skeleton of an upright subject from one frame of its markers (M, 3; NaN = unseen, filled by caller).
-    With `history_m` (F, M, 3) showing motion, markers whose nearest bones are close calls go to the
-    segment whose markers keep the steadiest distances to them (they move rigidly together);
-    `distance_sd`, the history's `_distance_sd` if the caller has it. `feet_of`, the marker segments of a
-    first calibration of the same frame: its feet keep their markers, and the legs run to where they stand.
-    `votes`, the history's `heading_votes` if the caller has them. `mirror_of`, each marker's named twin
-    (`mirror_index`): with a history, twins are then put on mirror segments (`_mirror_pairs`). `given`: the
-    marker segments to take instead of this frame's own (`calibrate_from_history`'s medoid), twins still
-    mended; the frame gives the skeleton and the offsets.
-
-    Returns (marker_segment (M,), marker_offsets_m (M, 3), joint_offsets_m (14, 3), t_world_root_m (3,),
-    R_parent_segment (14, 3, 3)) — the calibration pose is the model's zero pose.
-    """
+def _template(positions_m: np.ndarray, history_m: np.ndarray | None, feet_of: np.ndarray | None, votes: list | None):
+    """`calibrate`'s template of an upright subject on one frame of its markers (M, 3): (body frame, the
+    markers in body coordinates [heights], joint positions {segment: (3,)} and bone tips there, cost (M, 14):
+    each marker's distance from each segment's bone less its capsule radius [heights])."""
     bf = body_frame(positions_m)
     if history_m is not None and len(history_m) >= 10:
         bf = _vote_heading(bf, positions_m, heading_votes(history_m) if votes is None else votes)
@@ -290,6 +277,38 @@ def calibrate(
     for k, name in enumerate(SEGMENTS):
         d = np.min([_seg_dist(Q, a, b) for a, b in bones[name]], axis=0)
         cost[:, k] = d - _RADIUS[name]
+    return bf, Q, J, tips, cost
+
+
+def template_misfit(positions_m: np.ndarray, marker_segment: np.ndarray) -> float:
+    """How far [heights] the markers (M, 3) of an upright subject sit outside the capsules of the segments
+    `marker_segment` gives them on `calibrate`'s template, mean over those seen: near zero for a body the
+    template explains, tenths for one stood on its head (`calibrate_from_history`'s lying subjects)."""
+    _, _, _, _, cost = _template(positions_m, None, None, None)
+    ok = np.isfinite(positions_m[:, 0])
+    return float(np.mean(np.maximum(cost[ok, marker_segment[ok]], 0.0)))
+
+
+def calibrate(
+    positions_m: np.ndarray, history_m: np.ndarray | None = None, distance_sd: np.ndarray | None = None,
+    feet_of: np.ndarray | None = None, votes: list | None = None, mirror_of: np.ndarray | None = None,
+    given: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Skeleton of an upright subject from one frame of its markers (M, 3; NaN = unseen, filled by caller).
+    With `history_m` (F, M, 3) showing motion, markers whose nearest bones are close calls go to the
+    segment whose markers keep the steadiest distances to them (they move rigidly together);
+    `distance_sd`, the history's `_distance_sd` if the caller has it. `feet_of`, the marker segments of a
+    first calibration of the same frame: its feet keep their markers, and the legs run to where they stand.
+    `votes`, the history's `heading_votes` if the caller has them. `mirror_of`, each marker's named twin
+    (`mirror_index`): with a history, twins are then put on mirror segments (`_mirror_pairs`). `given`: the
+    marker segments to take instead of this frame's own (`calibrate_from_history`'s medoid), twins still
+    mended; the frame gives the skeleton and the offsets.
+
+    Returns (marker_segment (M,), marker_offsets_m (M, 3), joint_offsets_m (14, 3), t_world_root_m (3,),
+    R_parent_segment (14, 3, 3)) — the calibration pose is the model's zero pose.
+    """
+    bf, Q, J, tips, cost = _template(positions_m, history_m, feet_of, votes)
+    h = bf.height_m
     # Markers out to the side above the knees are arm markers (T-pose or hanging arms alike): split them
     # between upper arm and forearm by how far along the arm they sit. The rest take the nearest bone.
     arm_cols = [S[n] for n in ("l_upperarm", "l_forearm", "r_upperarm", "r_forearm")]
@@ -528,7 +547,7 @@ def _mirror_segments(marker_segment: np.ndarray, mirror_of: np.ndarray) -> np.nd
 def mirror_index(markers) -> np.ndarray:
     """(M,) each marker's named twin (`mirror_name`) among `markers`, -1 where it has none."""
     have = {name: i for i, name in enumerate(markers)}
-    return np.array([have.get(mirror_name(n) or "", -1) for n in markers], dtype=np.int64)
+    return np.array([have.get(other or "", -1) for other in mirror_names(markers)], dtype=np.int64)
 
 
 def _is_arm(k: int) -> bool:
@@ -658,7 +677,75 @@ def lopsided(marker_segment: np.ndarray) -> bool:
 
 def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None = None):
     """(marker_segment, marker_offsets_m, joint_offsets_m, t_world_root_m, R_parent_segment, layout_rms_m)
-    of the calibration that best explains labeled history (F, M, 3), or None if no frame of it calibrates.
+    of the calibration that best explains labeled history (F, M, 3), or None if no frame of it calibrates:
+    that of an upright subject (`_calibrate_upright`), or, for a subject lying down (`lying_rotations`), its
+    calibration stood up the way (head end first, feet first, or along the arms) whose frame the template
+    explains best (`template_misfit`, under LYING_MAX_MISFIT), laid back down. Pure, for the helper
+    process."""
+    upright = _calibrate_upright(history_m, mirror_of)
+    if upright is not None:
+        return upright[1]
+    # stood up each way, the template's assignment of one frame says which way is up (a subject lying
+    # still moves no joint, so the history's score cannot tell); the history calibrates that way alone
+    # (each way in full took 2.3x an upright calibration, 0.5 s on 03_rolling's seed beside the benchmark)
+    best, best_misfit = None, LYING_MAX_MISFIT
+    for R_up in lying_rotations(history_m):
+        ref = fill_reference(history_m @ R_up.T)
+        try:
+            misfit = template_misfit(ref, calibrate(ref)[0])
+        except CalibrationError:
+            continue
+        if misfit < best_misfit:
+            best, best_misfit = R_up, misfit
+    if best is None:
+        return None
+    stood = _calibrate_upright(history_m @ best.T, mirror_of)
+    if stood is None:
+        return None
+    seg, off, joints, t_root, R, layout = stood[1]
+    R = R.copy()
+    R[0] = best.T @ R[0]  # the root's turn and place back in the lying world (the rest are body-relative)
+    return seg, off, joints, best.T @ t_root, R, layout
+
+
+#: (`lying_rotations`) a history whose fullest frame is under this tall [m] and at least this long
+#: horizontally is a subject lying down (an upright one is 1.0-2.4 m tall, `_body_frame`)
+LYING_MAX_HEIGHT_M, LYING_MIN_LENGTH_M = 1.0, 1.0
+#: ... which is calibrated stood up the way round whose fullest frame `calibrate`'s template explains better
+#: (the history's score cannot tell: a subject lying still moves no joint), if its markers sit outside their
+#: capsules by under this [heights] on average (`template_misfit`). numediart/03_rolling's seed, lying prone
+#: and still, over 5 realizations: 0.004-0.015 head end up, 0.014-0.039 feet up; frames of it rolling over
+#: 0.06-0.22 either way.
+LYING_MAX_MISFIT = 0.025
+
+
+def lying_rotations(history_m: np.ndarray) -> list[np.ndarray]:
+    """For a subject lying down in labeled history (F, M, 3) (see LYING_MAX_HEIGHT_M), the rotations (3, 3)
+    that may stand it up, p -> R p: each turns one of the main horizontal axes of its fullest frame to the
+    vertical, one way or the other, about a horizontal axis (head to feet is the longer axis, unless the arms
+    are stretched out: a T-pose's span is its height). None otherwise. A subject lying is an upright one
+    turned over: the bones and markers are the same (numediart/03_rolling rolls on the floor from its
+    first frame)."""
+    P = fill_reference(history_m)
+    P = P[np.isfinite(P[:, 0])]
+    if len(P) < 8 or np.ptp(P[:, 2]) >= LYING_MAX_HEIGHT_M:
+        return []
+    _, V = np.linalg.eigh(np.cov((P[:, :2] - P[:, :2].mean(0)).T))
+    if np.ptp(P[:, :2] @ V[:, -1]) < LYING_MIN_LENGTH_M:
+        return []
+    turns = []
+    for axis in (V[:, 1], V[:, 0]):
+        for u in (axis, -axis):  # u to +z: a quarter turn about the horizontal axis u x z
+            k = np.array([u[1], -u[0], 0.0])
+            K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+            turns.append(np.eye(3) + K + K @ K)  # Rodrigues at 90 degrees (|k| = 1)
+    return turns
+
+
+def _calibrate_upright(history_m: np.ndarray, mirror_of: np.ndarray | None = None):
+    """(score, calibration) of the calibration that best explains labeled history (F, M, 3) of an upright
+    subject, or None if no frame of it calibrates; the score, lower the better, is `layout_residuals`'
+    median plus `articulation_error` [m].
 
     One frame's pose can mislead `calibrate` (a boxer's guard, arms forward across the shoulder line, turned
     its body frame: head markers went to the forearm, 22 of 33 markers off their segment, cmu_02_05).
@@ -676,8 +763,7 @@ def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None =
     seen keep offset zero on whatever segment the calibration left them (nothing is known of them: a
     refinement, `engine.refined_model`, moves them once they are seen and the fit suffers). With `mirror_of` (each
     marker's named twin, `mirror_index`), the chosen calibration is made again with its twins mended
-    (`calibrate`'s mirror_of), and kept if it scores within MIRROR_SCORE_SLACK of it. Pure, for the
-    helper process."""
+    (`calibrate`'s mirror_of), and kept if it scores within MIRROR_SCORE_SLACK of it."""
     seen = np.isfinite(history_m[..., 0]).sum(1)
     first = int(np.argmax(seen))
     full = np.flatnonzero(seen >= seen[first] - 2)
@@ -732,8 +818,8 @@ def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None =
         # close enough to a good one's to keep it: the tennis player's wrists stayed on the thighs)
         score, result = attempt(*best_args, mirror_of, given)
         if score <= MIRROR_SCORE_SLACK * best_score and (best_lop or not lopsided(result[0])):
-            best = result
-    return best
+            best, best_score = result, score
+    return None if best is None else (best_score, best)
 
 
 def _twins_apart(marker_segment: np.ndarray, mirror_of: np.ndarray | None) -> int:
@@ -845,6 +931,15 @@ def mirror_name(name: str) -> str | None:
     return None
 
 
+def mirror_names(markers) -> list[str | None]:
+    """`mirror_name` of each of a marker set's names, read after the prefix all of them share: numediart's
+    Qualisys set starts every name with L (LL_HLE / LR_HLE, LLAC / LRAC, LCLAV), and its L is no side."""
+    markers = list(markers)
+    prefix = os.path.commonprefix(markers) if len(markers) > 1 else ""
+    prefix = prefix[:min(len(prefix), min(map(len, markers), default=1) - 1)]  # (every name keeps a rest)
+    return [None if (o := mirror_name(n[len(prefix):])) is None else prefix + o for n in markers]
+
+
 def mirrored_markers(markers, marker_segment: np.ndarray, marker_offsets_m: np.ndarray, clear_m: float
                      ) -> list[tuple[str, int, np.ndarray]]:
     """The markers a subject's names imply but its model lacks (RBHD for a model with LBHD and no RBHD: a
@@ -859,14 +954,14 @@ def mirrored_markers(markers, marker_segment: np.ndarray, marker_offsets_m: np.n
     have = {name: i for i, name in enumerate(markers)}
     flip = np.array([1.0, -1.0, 1.0])
     found: dict[str, tuple[str, int, np.ndarray] | None] = {}
-    for name, k, off in zip(markers, marker_segment, marker_offsets_m):
-        other = mirror_name(name)
+    mirrors = mirror_names(markers)
+    for name, other, k, off in zip(markers, mirrors, marker_segment, marker_offsets_m):
         if other is None or other in have or k < 0:
             continue
         seg = int(MIRROR_SEGMENT[k])
         src, dst = [], []
-        for a, i in have.items():
-            j = have.get(mirror_name(a) or "")
+        for i, a in enumerate(mirrors):
+            j = have.get(a or "")
             if j is not None and marker_segment[i] == k and marker_segment[j] == seg:
                 src.append(marker_offsets_m[i] * flip)
                 dst.append(marker_offsets_m[j])

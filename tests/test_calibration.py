@@ -654,3 +654,80 @@ def test_a_serving_arm_held_still_in_the_seed_keeps_its_forearm():
     got = _seed_calibration("kineticstoolkit/kinematics_tennis_serve_2players.c3d", "Derrick", "L2", 7)
     assert [got[m] for m in ("RFRM", "RWRA", "RWRB", "RFIN")] == ["r_forearm"] * 4
     assert misplaced(got)[1] == []
+
+
+@pytest.mark.parametrize("marker_set", MARKER_SETS)
+@pytest.mark.parametrize("heading_rad, tilt_deg", [(0.0, 90.0), (np.pi, 90.0), (0.0, -90.0), (1.2, 90.0)])
+def test_a_subject_lying_on_the_floor_calibrates_as_one_standing(marker_set, heading_rad, tilt_deg):
+    """A seed taken lying down (numediart/03_rolling lies prone from its first frame): no frame of it is an
+    upright person, so it is stood up (`lying_rotations`, head end first or feet first, whichever the
+    template explains better: `template_misfit`), calibrated, and laid back down: the markers go to their
+    segments as a standing T-pose's do, the skeleton's up axis runs from the feet to the head, and the
+    calibration pose is the seed's."""
+    perf = perform(12, marker_set=marker_set, duration_s=0.6, heading_rad=heading_rad)
+    left = np.array([-np.sin(heading_rad), np.cos(heading_rad), 0.0])
+    lay = Rotation.from_rotvec(np.radians(tilt_deg) * left).as_matrix()  # face down or face up, head ahead or behind
+    P = perf.recording.points_m[: perf.tpose_frames] @ lay.T
+    P[..., 2] -= np.nanmin(P[..., 2]) - 0.02  # on the floor
+    assert calibrate_from_history(perf.recording.points_m[: perf.tpose_frames]) is not None  # (standing: as before)
+    seg, off, joints, t_root, R, _ = calibrate_from_history(P, mirror_index(perf.marker_names))
+    agree = np.mean(seg == perf.marker_segment)
+    assert agree >= 0.8, [(n, SEGMENTS[g], SEGMENTS[t]) for n, g, t in zip(perf.marker_names, seg, perf.marker_segment) if g != t]
+    head_ward = lay @ [0.0, 0.0, 1.0]
+    assert R[0][:, 2] @ head_ward > np.cos(np.radians(20))
+    from service.solver import PoseSolver
+
+    pred = PoseSolver(96).predict(t_root, R, joints, seg, off)
+    assert np.median(np.linalg.norm(pred - fill_reference(P), axis=1)) < 0.01
+
+
+def test_nothing_lying_is_read_into_a_subject_standing_or_a_flat_cloud():
+    """`lying_rotations`: none for an upright subject, nor for a cloud too short to be a body."""
+    from service.calibration import lying_rotations
+
+    perf = perform(12, duration_s=0.3)
+    assert lying_rotations(perf.recording.points_m) == []
+    small = np.random.default_rng(0).uniform(0, 1, (20, 30, 3)) * [0.6, 0.5, 0.2]
+    assert lying_rotations(small) == []
+    assert calibrate_from_history(small) is None
+
+
+@pytest.mark.parametrize("names, mirrors", [
+    (["LR_IAS", "LL_IAS", "LRAC", "LLAC", "LCLAV"], ["LL_IAS", "LR_IAS", "LLAC", "LRAC", None]),  # numediart: all start with L
+    (["LKNE", "RKNE", "C7"], ["RKNE", "LKNE", None]),
+    (["LKNE"], ["RKNE"]),
+    ([], []),
+])
+def test_mirror_names_read_past_a_prefix_every_name_shares(names, mirrors):
+    from service.calibration import mirror_names
+
+    assert mirror_names(names) == mirrors
+    have = {n: i for i, n in enumerate(names)}
+    assert mirror_index(names).tolist() == [have.get(m, -1) for m in mirrors]
+
+
+@pytest.mark.parametrize("level, seed", [("L2", 1), ("L3", 4)])
+def test_a_seed_lying_prone_on_the_floor_is_calibrated_head_up(level, seed):
+    """Real data: numediart/03_rolling lies prone through its 2 s seed (its cloud 0.2 m tall). It had no
+    skeleton at all; stood up (`lying_rotations`), the head's markers go to the head, the thigh and forefoot
+    clusters to their own side's segments, no marker crosses sides, the skeleton's up axis runs along the
+    floor to the head, and it faces the floor."""
+    from benchmarks.skeleton import misplaced, seed_history, side_crossed
+    from recordings.c3d import read_c3d
+    from recordings.corruption import corrupt
+    from tests.conftest import data_path
+
+    seq = corrupt(read_c3d(data_path("numediart/03_rolling.c3d")), level, seed)
+    names, history = seed_history(seq, "subject")
+    seen = np.isfinite(history[..., 0]).any(0)
+    names, history = [n for n, ok in zip(names, seen) if ok], history[:, seen]
+    seg, _, _, t_root, R, _ = calibrate_from_history(history, mirror_index([n.partition(":")[2] for n in names]))
+    got = {n: SEGMENTS[k] for n, k in zip(names, seg)}
+    _, off = misplaced(got)
+    stems = ("FHD", "BHD", "TH", "FM")
+    assert [o for o in off if any(o.partition("->")[0][2:].lstrip("_-").startswith(t) for t in stems)] == []
+    assert side_crossed(got)[1] == 0
+    forward, _, up = R[0].T
+    head = np.nanmean(history[:, [names.index(f"subject:L{s}FHD") for s in "LR"]], axis=(0, 1))
+    assert up @ (head - t_root) / np.linalg.norm(head - t_root) > 0.9 and abs(up[2]) < 0.3
+    assert forward[2] < -0.8

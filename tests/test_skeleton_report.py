@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks.skeleton import expected_segment, misplaced, residual_summary
+from benchmarks.skeleton import expected_segment, misplaced, residual_summary, side_crossed
 
 
 def test_expected_segment_reads_the_cmu_and_plug_in_gait_names():
@@ -23,9 +23,18 @@ def test_expected_segment_reads_the_cmu_and_plug_in_gait_names():
 
 
 def test_misplaced_counts_only_judged_markers():
-    segments = {"S:LWRA": "l_upperarm", "S:LWRB": "l_forearm", "S:LELB": "l_forearm", "S:LL_TH1": "pelvis"}
+    segments = {"S:LWRA": "l_upperarm", "S:LWRB": "l_forearm", "S:LELB": "l_forearm", "S:LLAC": "torso"}
     assert misplaced(segments) == (2, ["LWRA->l_upperarm"])
     assert misplaced({}) == (0, [])
+
+
+def test_numediarts_names_are_judged_after_the_l_every_one_starts_with():
+    """numediart's set (03_rolling) starts every name with L, then the side: LL_TH1 is the left thigh's,
+    LRUA2 the right upper arm's, LR-SK1 the right shank's; its acromions and epicondyles are not judged."""
+    segments = {"S:LL_TH1": "pelvis", "S:LRUA2": "r_upperarm", "S:LR-SK1": "r_shank", "S:LLFHD": "head",
+                "S:LCV7": "torso", "S:LRAC": "r_upperarm", "S:LL_FLE": "l_shank", "S:LR_FCC": "r_shank"}
+    assert misplaced(segments) == (6, ["LL_TH1->pelvis", "LR_FCC->r_shank"])
+    assert side_crossed({"S:LL_TH1": "r_thigh", "S:LR_TH1": "r_thigh", "S:LCV7": "torso"}) == (2, 1)
 
 
 def test_residual_summary():
