@@ -1,4 +1,5 @@
-"""Subject calibration: from a cloud of identified markers in an upright pose to a skeleton model.
+"""Subject calibration: from a cloud of identified markers in an upright pose (or lying on the floor,
+`lying_rotations`: stood up, calibrated, laid back down) to a skeleton model.
 
 Works for any marker set, with no template: the one thing read from marker names, where they have it, is
 their side (LKNE / RKNE are twins, `mirror_name`). The subject's size is the height of its top marker above
