@@ -283,8 +283,9 @@ def _template(positions_m: np.ndarray, history_m: np.ndarray | None, feet_of: np
 
 def template_misfit(positions_m: np.ndarray, marker_segment: np.ndarray) -> float:
     """How far [heights] the markers (M, 3) of an upright subject sit outside the capsules of the segments
-    `marker_segment` gives them on `calibrate`'s template, mean over those seen: near zero for a body the
-    template explains, tenths for one stood on its head (`calibrate_from_history`'s lying subjects)."""
+    `marker_segment` gives them on `calibrate`'s template, mean over those seen: under 0.015 for a body
+    lying still stood up head end first, two to four times that feet first (`calibrate_from_history`'s
+    lying subjects, LYING_MAX_MISFIT)."""
     _, _, _, _, cost = _template(positions_m, None, None, None)
     ok = np.isfinite(positions_m[:, 0])
     return float(np.mean(np.maximum(cost[ok, marker_segment[ok]], 0.0)))
