@@ -689,10 +689,12 @@ def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None =
         return upright[1]
     # stood up each way, the template's assignment of one frame says which way is up (a subject lying
     # still moves no joint, so the history's score cannot tell); the history calibrates that way alone
-    # (each way in full took 2.3x an upright calibration, 0.5 s on 03_rolling's seed beside the benchmark)
+    # (each way in full took 2.3x an upright calibration, 0.5 s on 03_rolling's seed beside the benchmark;
+    # this way 0.18 s on an idle machine)
     best, best_misfit = None, LYING_MAX_MISFIT
-    for R_up in lying_rotations(history_m):
-        ref = fill_reference(history_m @ R_up.T)
+    fullest = fill_reference(history_m)
+    for R_up in lying_rotations(fullest):
+        ref = fullest @ R_up.T
         try:
             misfit = template_misfit(ref, calibrate(ref)[0])
         except CalibrationError:
@@ -710,8 +712,7 @@ def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None =
     return seg, off, joints, best.T @ t_root, R, layout
 
 
-#: (`lying_rotations`) a history whose fullest frame is under this tall [m] and at least this long
-#: horizontally is a subject lying down (an upright one is 1.0-2.4 m tall, `_body_frame`)
+#: (`lying_rotations`) a frame under this tall [m] and at least this long horizontally is a subject lying down (an upright one is 1.0-2.4 m tall, `_body_frame`)
 LYING_MAX_HEIGHT_M, LYING_MIN_LENGTH_M = 1.0, 1.0
 #: ... which is calibrated stood up the way round whose fullest frame `calibrate`'s template explains better
 #: (the history's score cannot tell: a subject lying still moves no joint), if its markers sit outside their
@@ -721,15 +722,14 @@ LYING_MAX_HEIGHT_M, LYING_MIN_LENGTH_M = 1.0, 1.0
 LYING_MAX_MISFIT = 0.025
 
 
-def lying_rotations(history_m: np.ndarray) -> list[np.ndarray]:
-    """For a subject lying down in labeled history (F, M, 3) (see LYING_MAX_HEIGHT_M), the rotations (3, 3)
-    that may stand it up, p -> R p: each turns one of the main horizontal axes of its fullest frame to the
-    vertical, one way or the other, about a horizontal axis (head to feet is the longer axis, unless the arms
-    are stretched out: a T-pose's span is its height). None otherwise. A subject lying is an upright one
-    turned over: the bones and markers are the same (numediart/03_rolling rolls on the floor from its
-    first frame)."""
-    P = fill_reference(history_m)
-    P = P[np.isfinite(P[:, 0])]
+def lying_rotations(positions_m: np.ndarray) -> list[np.ndarray]:
+    """For a subject lying down in one frame of its markers (M, 3; NaN = unseen; see LYING_MAX_HEIGHT_M),
+    the rotations (3, 3) that may stand it up, p -> R p: each turns one of the frame's main horizontal axes
+    to the vertical, one way or the other, about a horizontal axis (head to feet is the longer axis, unless
+    the arms are stretched out: a T-pose's span is its height). None otherwise. A subject lying is an
+    upright one turned over: the bones and markers are the same (numediart/03_rolling rolls on the floor
+    from its first frame)."""
+    P = positions_m[np.isfinite(positions_m[:, 0])]
     if len(P) < 8 or np.ptp(P[:, 2]) >= LYING_MAX_HEIGHT_M:
         return []
     _, V = np.linalg.eigh(np.cov((P[:, :2] - P[:, :2].mean(0)).T))

@@ -686,9 +686,9 @@ def test_nothing_lying_is_read_into_a_subject_standing_or_a_flat_cloud():
     from service.calibration import lying_rotations
 
     perf = perform(12, duration_s=0.3)
-    assert lying_rotations(perf.recording.points_m) == []
+    assert lying_rotations(perf.recording.points_m[0]) == []
     small = np.random.default_rng(0).uniform(0, 1, (20, 30, 3)) * [0.6, 0.5, 0.2]
-    assert lying_rotations(small) == []
+    assert lying_rotations(small[0]) == []
     assert calibrate_from_history(small) is None
 
 
