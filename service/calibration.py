@@ -712,7 +712,8 @@ def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None =
     return seg, off, joints, best.T @ t_root, R, layout
 
 
-#: (`lying_rotations`) a frame under this tall [m] and at least this long horizontally is a subject lying down (an upright one is 1.0-2.4 m tall, `_body_frame`)
+#: (`lying_rotations`) a frame under this tall [m] and at least this long horizontally is a subject lying
+#: down (an upright one is 1.0-2.4 m tall, `_body_frame`)
 LYING_MAX_HEIGHT_M, LYING_MIN_LENGTH_M = 1.0, 1.0
 #: ... which is calibrated stood up the way round whose fullest frame `calibrate`'s template explains better
 #: (the history's score cannot tell: a subject lying still moves no joint), if its markers sit outside their
@@ -937,8 +938,8 @@ def mirror_names(markers) -> list[str | None]:
     """`mirror_name` of each of a marker set's names, read after the prefix all of them share: numediart's
     Qualisys set starts every name with L (LL_HLE / LR_HLE, LLAC / LRAC, LCLAV), and its L is no side."""
     markers = list(markers)
-    prefix = os.path.commonprefix(markers) if len(markers) > 1 else ""
-    prefix = prefix[:min(len(prefix), min(map(len, markers), default=1) - 1)]  # (every name keeps a rest)
+    # (every name keeps a rest past the prefix)
+    prefix = os.path.commonprefix(markers)[: min(map(len, markers)) - 1] if len(markers) > 1 else ""
     return [None if (o := mirror_name(n[len(prefix):])) is None else prefix + o for n in markers]
 
 
