@@ -10,6 +10,11 @@ benchmark) and lists, from the first scored frame on:
   from a gap is allowed a few frames), with their spells, and on how many of those frames its name was on
   another point (a swap, not a loss of track);
 - the markers the seed never showed, which no labeler can name (they are out of the score's ceiling).
+
+With --true-skeleton it runs once more, each subject's skeleton replaced, as soon as it has one after the
+seed, by one aligned to the whole run's true labels (`true_skeleton`; refinement then off), and prints both
+runs' accuracy: how much of what the run lost is the skeleton's fault (joints a still seed never showed)
+rather than the tracking's. A diagnostic, not a labeler: it reads the answers.
 """
 
 from __future__ import annotations
@@ -18,6 +23,8 @@ import argparse
 import collections
 import sys
 from pathlib import Path
+
+import numpy as np
 
 from benchmarks.run import (DEFAULT_DATA, FULL_MAX_S, UsageError, corrupted, drive, engine_step, init_worker,
                             labeled_files, plan, select_files)
@@ -101,6 +108,73 @@ def report(seq, given: list, first: int, top: int = 12) -> list[str]:
     return lines
 
 
+#: (`true_skeleton`) rounds of solving every frame and re-aligning; poses kept of every this many frames;
+#: and the alignment's prior (weaker than the engine's 0.3: the true labels are to be believed)
+TRUE_SKELETON_ROUNDS, TRUE_SKELETON_EVERY, TRUE_SKELETON_PRIOR = 3, 5, 0.05
+
+
+def true_labeled_frames(seq, subject: str, markers) -> np.ndarray:
+    """(F, M, 3) each frame's points at their true markers of `subject` (NaN = unseen or dropped)."""
+    index = {seq.marker_names.index(f"{subject}:{m}"): k for k, m in enumerate(markers)
+             if f"{subject}:{m}" in seq.marker_names}
+    frames = np.full((seq.n_frames, len(markers), 3), np.nan)
+    for f in range(seq.n_frames):
+        if seq.points_m[f] is None:
+            continue
+        for p, t in zip(seq.points_m[f], seq.truth[f]):
+            if int(t) in index:
+                frames[f, index[int(t)]] = p
+    return frames
+
+
+def true_skeleton(model, state, solver, frames: np.ndarray, first: int):
+    """`model` (a calibrated SubjectModel) with its marker and joint offsets aligned to true-labeled frames
+    (F, M, 3) from frame `first` on (`calibration.refine`): each round solves every frame in order, warm-
+    started from `state`'s pose (a copy: `state` is left as it is), and aligns to the poses of every
+    TRUE_SKELETON_EVERY-th frame. The markers keep their segments."""
+    import copy
+    import dataclasses
+
+    from service import calibration, tracker
+
+    for _ in range(TRUE_SKELETON_ROUNDS):
+        st = copy.deepcopy(state)
+        kept, poses = [], []
+        for f in range(first, len(frames)):
+            seen = np.isfinite(frames[f, :, 0])
+            fit = None
+            for _ in range(2):
+                fit = tracker._fit(model, st, solver, frames[f], seen) or fit
+            if fit is not None and (f - first) % TRUE_SKELETON_EVERY == 0:
+                kept.append(f)
+                poses.append(st.R_parent_segment.copy())
+        if len(kept) < 2:
+            return model
+        off, joints = calibration.refine(frames[kept], np.stack(poses), model.marker_segment, model.marker_offsets_m,
+                                         model.joint_offsets_m, prior_weight=TRUE_SKELETON_PRIOR)
+        model = dataclasses.replace(model, marker_offsets_m=off, joint_offsets_m=joints)
+    return model
+
+
+def true_skeleton_step(engine, seq):
+    """`engine_step` for an engine whose subjects take `true_skeleton` on their first frame with a skeleton
+    after the seed, and then refine and recalibrate no more."""
+    step, swapped = engine_step(engine, seq.seed_frames), set()
+
+    def swapping(frame):
+        labels = step(frame)
+        if frame.frame >= seq.seed_frames:
+            for name, s in engine._subjects.items():
+                if name not in swapped and s.model.has_skeleton and s.refine_job is None:
+                    frames = true_labeled_frames(seq, name, s.model.markers)
+                    s.model = true_skeleton(s.model, s.state, engine.solver, frames, frame.frame)
+                    s.next_refine_frame = s.next_recalibration_frame = 1 << 62
+                    swapped.add(name)
+        return labels
+
+    return swapping
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python3 -m benchmarks.losses", description=__doc__.split("\n\n")[0])
     parser.add_argument("file", help="a labeled recording: a glob or a text its path contains, matching one file")
@@ -108,6 +182,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=1, help="corruption seed (default 1, the benchmark's)")
     parser.add_argument("--top", type=int, default=12, help="rows per list (default 12)")
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="directory of the recordings (default ../shared/data)")
+    parser.add_argument("--true-skeleton", action="store_true",
+                        help="run again with each skeleton aligned to the run's true labels, and print both accuracies")
     args = parser.parse_args(argv)
     try:
         if not args.data.is_dir():
@@ -132,6 +208,15 @@ def main(argv: list[str] | None = None) -> int:
     engine.warm_up()
     given, _ = drive(seq, "seeded", engine_step(engine, seq.seed_frames))
     print("\n".join(report(seq, given, seq.seed_frames, args.top)))
+    if args.true_skeleton:
+        from benchmarks.score import score
+
+        engine = Engine(EngineConfig())
+        given_true, _ = drive(seq, "seeded", true_skeleton_step(engine, seq))
+        print("\naccuracy / precision [%]:")
+        for what, g in (("as it runs", given), ("with the true skeleton", given_true)):
+            sc = score(seq, g, "seeded", seq.seed_frames)
+            print(f"  {what:24s} {100 * sc.accuracy:5.1f} / {100 * sc.precision:5.1f}")
     return 0
 
 

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from benchmarks.losses import SETTLE_FRAMES, main, never_in_seed, report, unlabeled_in_view, wrong_pairs
+from benchmarks.losses import (SETTLE_FRAMES, main, never_in_seed, report, true_labeled_frames, true_skeleton,
+                              unlabeled_in_view, wrong_pairs)
+from protocol.skeleton import SEGMENTS
 from recordings.corruption import CorruptedSequence
 from tests.conftest import data_path
 
@@ -68,3 +70,42 @@ def test_the_command_refuses_bad_data_and_files_matching_none_or_several_in_one_
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 3 and all(line.startswith("benchmarks.losses: ") for line in err), err
     assert "data directory" in err[0] and "no labeled file matches" in err[1] and "matches 2 files" in err[2]
+
+
+def test_true_skeleton_aligns_a_skeleton_with_misplaced_joints_to_the_true_labels():
+    """A calibrated performer's skeleton with its knees and elbows moved 4 cm fits its true-labeled frames
+    worse; aligned to them (`true_skeleton`) it fits them about as well as the calibration did."""
+    import dataclasses
+
+    from recordings.corruption import corrupt
+    from recordings.synthetic import perform
+    from service import tracker
+    from service.engine import Engine
+    from tests.test_engine import run
+
+    seq = corrupt(perform(3, duration_s=6.0).recording, "L0", 3)
+    engine = Engine()
+    part = CorruptedSequence(seq.points_m[:400], seq.truth[:400], seq.marker_names, seq.rate_hz)
+    run(part, engine)
+    (name, s), = engine._subjects.items()
+    assert s.model.has_skeleton
+    frames = true_labeled_frames(seq, name, s.model.markers)
+    bent = s.model.joint_offsets_m.copy()
+    knees_elbows = [SEGMENTS.index(k) for k in ("l_shank", "r_shank", "l_forearm", "r_forearm")]
+    bent[knees_elbows] += [0.04, 0.0, 0.0]
+    wrong = dataclasses.replace(s.model, joint_offsets_m=bent)
+
+    def rms(model):  # median true-label fit over the frames after 400
+        st, out = tracker.new_state(model, frames[400], 0), []
+        st.t_root_m, st.R_parent_segment = s.state.t_root_m.copy(), s.state.R_parent_segment.copy()
+        for f in range(400, len(frames), 4):
+            seen = np.isfinite(frames[f, :, 0])
+            fit = None
+            for _ in range(2):
+                fit = tracker._fit(model, st, engine.solver, frames[f], seen) or fit
+            out.append(fit.residual_rms_m)
+        return float(np.median(out))
+
+    aligned = true_skeleton(wrong, s.state, engine.solver, frames, 400)
+    before, after, calibrated = rms(wrong), rms(aligned), rms(s.model)
+    assert after < 0.5 * before and after < calibrated + 0.002, (before, after, calibrated)
