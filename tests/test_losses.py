@@ -109,3 +109,14 @@ def test_true_skeleton_aligns_a_skeleton_with_misplaced_joints_to_the_true_label
     aligned = true_skeleton(wrong, s.state, engine.solver, frames, 400)
     before, after, calibrated = rms(wrong), rms(aligned), rms(s.model)
     assert after < 0.5 * before and after < calibrated + 0.002, (before, after, calibrated)
+
+
+def test_the_command_runs_a_real_recording_again_with_the_true_skeleton_and_prints_both_accuracies(capsys):
+    data = data_path("cmu/07_01.c3d").parents[1]
+    assert main(["07_01", "--level", "L2", "--seed", "1", "--true-skeleton", "--data", str(data)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    rows = {line.strip().rsplit(None, 3)[0]: line for line in out[out.index("accuracy / precision [%]:") + 1:]}
+    assert set(rows) == {"as it runs", "with the true skeleton"}, out
+    for line in rows.values():
+        accuracy, precision = (float(x) for x in line.split()[-3::2])
+        assert 90.0 <= accuracy <= 100.0 and 90.0 <= precision <= 100.0, line
