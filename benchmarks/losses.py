@@ -115,16 +115,9 @@ TRUE_SKELETON_ROUNDS, TRUE_SKELETON_EVERY, TRUE_SKELETON_PRIOR = 3, 5, 0.05
 
 def true_labeled_frames(seq, subject: str, markers) -> np.ndarray:
     """(F, M, 3) each frame's points at their true markers of `subject` (NaN = unseen or dropped)."""
-    index = {seq.marker_names.index(f"{subject}:{m}"): k for k, m in enumerate(markers)
-             if f"{subject}:{m}" in seq.marker_names}
-    frames = np.full((seq.n_frames, len(markers), 3), np.nan)
-    for f in range(seq.n_frames):
-        if seq.points_m[f] is None:
-            continue
-        for p, t in zip(seq.points_m[f], seq.truth[f]):
-            if int(t) in index:
-                frames[f, index[int(t)]] = p
-    return frames
+    from benchmarks.skeleton import labeled_positions
+
+    return labeled_positions(seq, [f"{subject}:{m}" for m in markers])
 
 
 def true_skeleton(model, state, solver, frames: np.ndarray, first: int):

@@ -88,18 +88,26 @@ def side_crossed(segments: dict[str, str]) -> tuple[int, int]:
     return len(sided), sum(1 for side, s in sided if s[:2] == ("r_" if side == "l_" else "l_"))
 
 
-def seed_history(seq, subject: str) -> tuple[list[str], np.ndarray]:
-    """(marker names, labeled history (F, M, 3)) of one subject over the seed of a corrupted recording,
-    each point at its true marker: what the engine calibrates a seeded subject from."""
-    names = [n for n in seq.marker_names if n.partition(":")[0] == subject]
-    index = {seq.marker_names.index(n): k for k, n in enumerate(names)}
-    history = np.full((seq.seed_frames, len(names), 3), np.nan)
-    for f in range(seq.seed_frames):
+def labeled_positions(seq, names, n_frames: int | None = None) -> np.ndarray:
+    """(F, M, 3) each of the first n_frames frames' points (all frames by default) at their true markers
+    `names` (full labels; one the recording lacks stays unseen); NaN = unseen, or a dropped frame."""
+    n_frames = seq.n_frames if n_frames is None else n_frames
+    index = {seq.marker_names.index(n): k for k, n in enumerate(names) if n in seq.marker_names}
+    positions = np.full((n_frames, len(names), 3), np.nan)
+    for f in range(n_frames):
         if seq.points_m[f] is None:
             continue
         for p, t in zip(seq.points_m[f], seq.truth[f]):
             if int(t) in index:
-                history[f, index[int(t)]] = p
+                positions[f, index[int(t)]] = p
+    return positions
+
+
+def seed_history(seq, subject: str) -> tuple[list[str], np.ndarray]:
+    """(marker names, labeled history (F, M, 3)) of one subject over the seed of a corrupted recording,
+    each point at its true marker: what the engine calibrates a seeded subject from."""
+    names = [n for n in seq.marker_names if n.partition(":")[0] == subject]
+    history = labeled_positions(seq, names, seq.seed_frames)
     return names, history[np.isfinite(history[..., 0]).any(1)]
 
 
