@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import argparse
 import collections
+import copy
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -125,9 +127,6 @@ def true_skeleton(model, state, solver, frames: np.ndarray, first: int):
     (F, M, 3) from frame `first` on (`calibration.refine`): each round solves every frame in order, warm-
     started from `state`'s pose (a copy: `state` is left as it is), and aligns to the poses of every
     TRUE_SKELETON_EVERY-th frame. The markers keep their segments."""
-    import copy
-    import dataclasses
-
     from service import calibration, tracker
 
     for _ in range(TRUE_SKELETON_ROUNDS):

@@ -74,7 +74,8 @@ def test_the_command_refuses_bad_data_and_files_matching_none_or_several_in_one_
 
 def test_true_skeleton_aligns_a_skeleton_with_misplaced_joints_to_the_true_labels():
     """A calibrated performer's skeleton with its knees and elbows moved 4 cm fits its true-labeled frames
-    worse; aligned to them (`true_skeleton`) it fits them about as well as the calibration did."""
+    worse; aligned to them (`true_skeleton`) it fits them at least as well as the engine's own model (when
+    written: 25 mm RMS median moved, 1.5 mm aligned, 24 mm the engine's model at frame 400)."""
     import dataclasses
 
     from recordings.corruption import corrupt
