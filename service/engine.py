@@ -14,6 +14,7 @@ import json
 import logging
 import statistics
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -113,6 +114,14 @@ RECALIBRATE_MAX_BONE_CHANGE_M = 0.05
 #: an upright person): KneeltoProne, calibrated again from the frames of its going prone, kept no better fit
 #: (520-750 -> 740-830 mm p90) and lost 0.6 % of one run's labels
 RECALIBRATE_MIN_HEIGHT_M = 1.0
+#: ... but a subject lying on the floor (`calibration.lying_rotations`) is calibrated again, stood up, from
+#: the frames in which it has held still (its markers' median distance from their latest places under
+#: RECALIBRATE_LYING_STILL_M), once it has done so for RECALIBRATE_LYING_STILL_S (and at least
+#: RECALIBRATE_LYING_MIN_FRAMES frames), with bones of its own: a seed that knelt gave the template's
+#: straight legs the height of the top marker (KneeltoProne's subject, 1.18 m tall), which held while it
+#: knelt and missed the markers by 0.35-0.66 m once it lay prone; calibrated again there, its solves
+#: fit them to 6-60 mm (median over its last 0.6 s, 12 realizations at L2 and L3).
+RECALIBRATE_LYING_STILL_M, RECALIBRATE_LYING_STILL_S, RECALIBRATE_LYING_MIN_FRAMES = 0.02, 0.25, 24
 RECALIBRATE_CATCH_UP_SOLVES = 4  # solves of the latest frame from the current pose (then one a frame)
 CALIBRATE_CATCH_UP_SOLVES = 2  # solves that bring a calibration's pose up to the frame it takes effect
 #: A calibration (100-300 ms of work beside the frame loop) started at frame f takes effect this much stream
@@ -508,6 +517,9 @@ class Engine:
         s.poor_fit_frames += bool(st.fit_rms_m > RECALIBRATE_RMS_M)
         if s.auto or s.poor_fit_frames < RECALIBRATE_POOR_FRAMES or st.frames < s.next_recalibration_frame:
             return False
+        still = max(self._frames(s, RECALIBRATE_LYING_STILL_S), RECALIBRATE_LYING_MIN_FRAMES)
+        if not _calibratable_now(np.stack(list(s.history)[-still:])):
+            return False  # (the poor frames are kept: it is tried once the subject stands, or lies still)
         s.poor_fit_frames = 0
         s.recalibration_interval = (2 * s.recalibration_interval if s.recalibration_interval
                                     else self._frames(s, RECALIBRATE_EVERY_S))
@@ -940,6 +952,31 @@ def refined_model(solver_spec: tuple, model, hist, t0, R0, n_frames: int = 40, r
     return dataclasses.replace(model, layout_rms_m=layout)
 
 
+def _still_since(hist: np.ndarray) -> int:
+    """The first frame of labeled history (F, M, 3) from which the subject holds its latest pose: its
+    markers' median distance from their latest places stays under RECALIBRATE_LYING_STILL_M."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # frames with no marker seen
+        off_last = np.nanmedian(np.linalg.norm(hist - hist[-1], axis=2), axis=1)
+    moved = ~(off_last < RECALIBRATE_LYING_STILL_M)  # (NaN: nothing to compare, not still)
+    return int(np.flatnonzero(moved)[-1] + 1) if moved.any() else 0
+
+
+def _calibratable_now(recent: np.ndarray) -> bool:
+    """Whether a subject whose latest labeled frames are `recent` (F, M, 3), oldest first, may be calibrated
+    again from its history: it stands (RECALIBRATE_MIN_HEIGHT_M tall), or lies on the floor and has held
+    still through `recent` (at least RECALIBRATE_LYING_MIN_FRAMES frames). Going down, rolling over or
+    crouched it is neither, and a calibration would be refused (the try is not made, nor counted)."""
+    last = recent[-1]
+    seen = np.isfinite(last[:, 0])
+    if seen.sum() < 8:
+        return False
+    if np.ptp(last[seen, 2]) >= RECALIBRATE_MIN_HEIGHT_M:
+        return True
+    return (len(recent) >= RECALIBRATE_LYING_MIN_FRAMES and bool(calibration.lying_rotations(last))
+            and _still_since(recent) == 0)
+
+
 def recalibrated_model(solver_spec: tuple, model, hist: np.ndarray, mirror_of: np.ndarray, t0: np.ndarray,
                        R0: np.ndarray):
     """(model, t_world_root_m, R_parent_segment) calibrated anew from labeled history (F, M, 3)
@@ -948,19 +985,30 @@ def recalibrated_model(solver_spec: tuple, model, hist: np.ndarray, mirror_of: n
     markers keep their layouts rigid either way: the joints tell them apart, so the solves judge. The layout
     checks take the new calibration's layouts: the old ones sit in segments the markers left (kept for the
     markers that stayed, a wrist and finger triad moved off the pelvis went unchecked, and stayed permuted
-    for 227 frames: two players at L3, seed 11). None too if the subject is not standing now
-    (RECALIBRATE_MIN_HEIGHT_M) or a bone would change length by more than RECALIBRATE_MAX_BONE_CHANGE_M.
+    for 227 frames: two players at L3, seed 11). None too if the subject neither stands now
+    (RECALIBRATE_MIN_HEIGHT_M) nor lies on the floor (`calibration.lying_rotations`), or, standing, a bone
+    would change length by more than RECALIBRATE_MAX_BONE_CHANGE_M.
     Pure, for the helper process; `solver_spec` as `refined_model`'s, (t0, R0) the current pose."""
     last = hist[-1][np.isfinite(hist[-1, :, 0])]
-    if len(last) < 8 or np.ptp(last[:, 2]) < RECALIBRATE_MIN_HEIGHT_M:
-        return None  # not standing now: its history since is no calibration's (kneeling to prone)
+    if len(last) < 8:
+        return None
+    lying = bool(calibration.lying_rotations(hist[-1]))
+    if lying:
+        # from the frames it has held still in, stood up (`calibrate_from_history`), and with bones of its
+        # own (RECALIBRATE_LYING_STILL_M); from all its frames lying, those of its getting down made a
+        # skeleton that missed the markers by 0.37 m (KneeltoProne at L2, seed 0)
+        hist = hist[_still_since(hist):]
+        if len(hist) < RECALIBRATE_LYING_MIN_FRAMES:
+            return None
+    elif np.ptp(last[:, 2]) < RECALIBRATE_MIN_HEIGHT_M:
+        return None  # not standing now, nor lying: its history since is no calibration's (kneeling to prone)
     result = calibration.calibrate_from_history(hist, mirror_of)
     if result is None:
         return None
     seg, off, joints, _, _, layout = result
     bones = np.abs(np.linalg.norm(joints, axis=1) - np.linalg.norm(model.joint_offsets_m, axis=1))
-    if bones.max() > RECALIBRATE_MAX_BONE_CHANGE_M:
-        return None  # the same person: its history was not one to calibrate from (lying prone)
+    if not lying and bones.max() > RECALIBRATE_MAX_BONE_CHANGE_M:
+        return None  # the same person: its history was not one to calibrate from (going prone)
     new = dataclasses.replace(model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints,
                               layout_offsets_m=off, layout_rms_m=layout)
     solver = _solver(solver_spec)

@@ -948,3 +948,84 @@ def test_a_calibration_that_exchanged_two_segments_markers_is_redone_from_the_hi
     lying = hist.copy()
     lying[-1, :, 2] *= 0.5
     assert redo(wrong, lying) is None
+
+
+def _laid_down(points_m: np.ndarray) -> np.ndarray:
+    """Frames (F, M, 3) of a subject standing facing +x laid face down on the floor (a quarter turn about
+    its left, +y)."""
+    from scipy.spatial.transform import Rotation
+
+    P = points_m @ Rotation.from_rotvec([0.0, np.pi / 2, 0.0]).as_matrix().T
+    P[..., 2] -= np.nanmin(P[..., 2]) - 0.02
+    return P
+
+
+def test_a_subject_is_calibrated_again_only_standing_or_lying_still():
+    """`_calibratable_now`: a recalibration is started only when its history can give one: the subject
+    stands, or lies on the floor and holds still. Going down, rolling over, or crouched (under a metre
+    tall and not long), it is not tried, and the try does not count against the next."""
+    from service.engine import RECALIBRATE_LYING_MIN_FRAMES, _calibratable_now
+
+    perf = perform(3, duration_s=6.0, heading_rad=0.0)
+    n = RECALIBRATE_LYING_MIN_FRAMES
+    walking = perf.recording.points_m[-n:]
+    still = np.repeat(walking[-1:], n, axis=0)  # (arms down: a T-pose's span is a lying body's length)
+    assert _calibratable_now(walking)
+    assert _calibratable_now(_laid_down(still))
+    rolling = _laid_down(still) + np.linspace(0.0, 0.1, n)[:, None, None] * [1.0, 0.0, 0.0]
+    assert not _calibratable_now(rolling)
+    assert not _calibratable_now(_laid_down(still)[: n // 2])  # still, but not for long enough to tell
+    crouched = still.copy()
+    crouched[..., 2] *= 0.5
+    assert not _calibratable_now(crouched)
+
+
+def test_a_subject_lying_still_is_calibrated_again_with_bones_of_its_own():
+    """`recalibrated_model` for a subject lying still on the floor: its skeleton, from a seed that knelt
+    (the template's straight legs at the height of the top marker: 1.18 m for clouthier/KneeltoProne's
+    subject), missed the markers by decimetres once it lay prone. Calibrated again from the frames since it
+    lay down, stood up (`calibration.lying_rotations`), every marker goes back on its segment and the new
+    bones, longer by a third, are taken: the bone-length guard, which keeps a standing subject's
+    recalibration from reading a person of another size into a poor history, does not hold a skeleton
+    that was never sized from a standing frame."""
+    from service.calibration import calibrate_from_history, mirror_index
+    from service.engine import recalibrated_model
+    from service.tracker import SubjectModel
+
+    perf = perform(3, duration_s=2.0, heading_rad=0.0)
+    twins = mirror_index(perf.marker_names)
+    hist = _laid_down(np.repeat(perf.recording.points_m[:1], 60, axis=0))
+    seg, off, joints, t_root, R, _ = calibrate_from_history(hist, twins)
+    assert (seg == np.asarray(perf.marker_segment)).mean() > 0.9
+    shrunk = SubjectModel("P", perf.marker_names, np.roll(seg, 5), 0.7 * off, 0.7 * joints, True)
+    got = recalibrated_model(Engine()._solver_spec, shrunk, hist, twins, t_root, R)
+    assert got is not None
+    model = got[0]
+    assert (model.marker_segment == seg).all()
+    assert np.allclose(np.linalg.norm(model.joint_offsets_m, axis=1), np.linalg.norm(joints, axis=1), atol=0.01)
+    standing = np.repeat(perf.recording.points_m[:1], 60, axis=0)  # standing: the same shrunk model is kept
+    assert recalibrated_model(Engine()._solver_spec, shrunk, standing, twins, t_root, R) is None
+
+
+def test_a_subject_that_knelt_in_the_seed_fits_its_markers_once_it_lies_prone():
+    """clouthier/KneeltoProne01 at L2: the seed kneels on one knee, so the calibration's skeleton (straight
+    legs, 1.18 m tall) holds while the subject kneels and misses its markers by 0.4-0.7 m once it lies
+    prone (frames 1200-1745). It is calibrated again once it lies still there (`_calibratable_now`), and
+    its solves over the last 0.5 s fit the markers to 15 mm RMS (median; 440-490 mm before), while its
+    labels stay right."""
+    seq = corrupt(read_c3d(data_path("clouthier/KneeltoProne01.c3d")), "L2", 1)
+    engine = Engine()
+    residuals, right, total = [], 0, 0
+    for f, points in enumerate(seq.points_m):
+        if points is None:
+            continue
+        labels = seq.true_labels(f) if f < seq.seed_frames else None
+        outputs, _ = engine.step(FrameInput("default", f, t_ns(f, seq.rate_hz), points, labels))
+        if f >= seq.n_frames - 120:
+            residuals += [o.residual_m for o in outputs if o.solved]
+            given = label_points(outputs, len(points))
+            truth = seq.true_labels(f)
+            right += sum(g == t for g, t in zip(given, truth) if t)
+            total += sum(bool(t) for t in truth)
+    assert np.median(residuals) < 0.03, np.median(residuals)
+    assert right >= 0.99 * total, (right, total)
