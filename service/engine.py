@@ -24,7 +24,7 @@ from recordings.recording import split_label
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from service import calibration, kernels, tracker, worker
+from service import calibration, kernels, layouts, partners, track_state, tracker, worker
 from service.config import EngineConfig
 from service.kinematics import joint_angles, matrix_to_quat_xyzw
 from service.solver import PoseSolver
@@ -156,8 +156,8 @@ PHASES = 12
 @dataclasses.dataclass
 class _Subject:
     stream: str
-    model: tracker.SubjectModel
-    state: tracker.TrackState
+    model: track_state.SubjectModel
+    state: track_state.TrackState
     history: collections.deque  # of (M, 3) labeled positions, NaN = unlabeled
     next_calibration_frame: int = 0
     pose_cache: tuple | None = None  # (R_parent_segment it was made from, quaternions, joint angles)
@@ -302,7 +302,7 @@ class Engine:
             try:
                 with np.load(f) as z:
                     meta = json.loads(str(z["meta"]))
-                    model = tracker.SubjectModel(
+                    model = track_state.SubjectModel(
                         meta["name"], tuple(meta["markers"]), z["marker_segment"], z["marker_offsets_m"], z["joint_offsets_m"],
                         bool(meta["has_skeleton"]),
                         # files written before the layout check have no layout: the check stays off for them
@@ -316,7 +316,7 @@ class Engine:
                     # files written before the long-memory statistics start them from the running ones
                     slow = ("dist_slow_mean_m", "dist_slow_var_m2") if "dist_slow_mean_m" in z.files else ("dist_mean_m", "dist_var_m2")
                     st.dist_slow_mean_m, st.dist_slow_var_m2 = z[slow[0]].copy(), z[slow[1]].copy()
-                    tracker._update_partners(st)
+                    partners._update_partners(st)
                     st.t_root_m, st.R_parent_segment = z["t_root_m"], z["R_parent_segment"]
             except (OSError, KeyError, ValueError) as e:
                 raise EngineError(f"calibration file {f} is unreadable: {e}") from None
@@ -406,7 +406,7 @@ class Engine:
         old = () if s is None else s.model.markers
         markers = (old + tuple(sorted(new)))[: self.config.max_markers]
         m = len(markers)
-        model = tracker.SubjectModel(name, markers, np.zeros(m, int), np.zeros((m, 3)), np.zeros((14, 3)), False)
+        model = track_state.SubjectModel(name, markers, np.zeros(m, int), np.zeros((m, 3)), np.zeros((14, 3)), False)
         hist = collections.deque(maxlen=HISTORY_FRAMES)
         if s is not None:
             for h in s.history:
@@ -455,7 +455,7 @@ class Engine:
             s.model = dataclasses.replace(s.model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints,
                                           has_skeleton=True, layout_offsets_m=off, layout_rms_m=layout)
             s.state.t_root_m, s.state.R_parent_segment = t_root, R
-            tracker.learn_layout_trust(s.model, s.state, np.stack(s.history))
+            layouts.learn_layout_trust(s.model, s.state, np.stack(s.history))
             # bring the calibration pose (of a frame CALIBRATE_APPLY_S back) up to now on the latest
             # labels: several solves, as one of max_steps iterations can stop short of a limb that moved
             last = s.history[-1]
@@ -538,7 +538,7 @@ class Engine:
         """Take a recalibration (`recalibrated_model`): its pose is of the frame it was started on, so the
         latest labels are solved from it and from the current pose, which holds wherever the segments kept
         their markers, and the better fit stands. Its layouts are trusted as a calibration's are
-        (`tracker.learn_layout_trust`, over the history it was made from)."""
+        (`layouts.learn_layout_trust`, over the history it was made from)."""
         if len(model.markers) != len(s.model.markers):
             return
         st, last = s.state, s.history[-1]
@@ -555,7 +555,7 @@ class Engine:
             st.t_root_m, st.R_parent_segment, st.fit_rms_m = kept
             return
         s.model = model
-        tracker.learn_layout_trust(model, st, np.stack(s.history))
+        layouts.learn_layout_trust(model, st, np.stack(s.history))
         _, st.t_root_m, st.R_parent_segment = best
         st.fit_rms_m = best[0]
 
@@ -595,7 +595,7 @@ class Engine:
             name = f"S{self._auto_count}"
         markers = tuple(f"M{j:02d}" for j in range(len(g)))
         m = len(markers)
-        model = tracker.SubjectModel(name, markers, np.zeros(m, int), np.zeros((m, 3)), np.zeros((14, 3)), False)
+        model = track_state.SubjectModel(name, markers, np.zeros(m, int), np.zeros((m, 3)), np.zeros((14, 3)), False)
         st = tracker.new_state(model, points[g], frame.t_ns, phase=self._phase(name))
         self._subjects[name] = s = _Subject(frame.stream, model, st, collections.deque(maxlen=HISTORY_FRAMES), auto=True)
         s.trial = _Trial()
@@ -606,7 +606,7 @@ class Engine:
         """One frame of a subject's trial (`_Trial`): track the free points on it with a tight gate (the
         person stands still); at the window's end, add the points seen long enough and check the T-pose."""
         trial, st = s.trial, s.state
-        # its hidden markers first: a subject this young has no rigid partners (tracker.PARTNER_MIN_SAMPLES)
+        # its hidden markers first: a subject this young has no rigid partners (partners.PARTNER_MIN_SAMPLES)
         # to find them by, and a marker back from a moment's occlusion would start a track of its own
         lost = np.flatnonzero(st.ever_seen & ~st.labeled)
         last = np.vstack([st.pos_m[lost]] + [t[-1][1][None] for t in trial.tracks])
@@ -702,7 +702,7 @@ class Engine:
         # Only for images with a free point within MIRROR_REACH_M of where that fit puts them (most frames
         # have none: 0.09 ms a look on 135_02 with every image placed, 41 markers)
         pose = (st.t_root_m, st.R_parent_segment, model.joint_offsets_m)
-        Rs, ps = kernels.world_transforms(*(np.require(a, np.float64, "CW") for a in pose), tracker._PARENTS)
+        Rs, ps = kernels.world_transforms(*(np.require(a, np.float64, "CW") for a in pose), track_state._PARENTS)
         by_fit = np.array([Rs[k] @ off + ps[k] for _, k, off in s.mirrors])
         reach = np.linalg.norm(points[idx, None] - by_fit[None], axis=2).min(0) < MIRROR_REACH_M
         where = np.full_like(by_fit, np.nan)
@@ -713,7 +713,7 @@ class Engine:
                 a, b = model.marker_offsets_m[lab], st.pos_m[lab]
                 if len(lab) == 2:
                     a, b = np.vstack([a, np.zeros(3)]), np.vstack([b, ps[k]])
-                R, t = tracker.rigid_motion(a, b)
+                R, t = track_state.rigid_motion(a, b)
                 where[r] = R @ off + t
         d = np.linalg.norm(points[idx, None] - where[None], axis=2)
         near = d.min(0) < MIRROR_GATE_M

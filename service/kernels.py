@@ -1,10 +1,11 @@
 """Compiled inner loops of the per-frame tracker (numba).
 
-Why hand-written loops: a subject has ~40 markers, so every numpy call in `tracker` works on arrays of a
-few hundred numbers and costs its ~1-3 us of call overhead, not arithmetic. A frame made ~150 such calls
-(~0.5 ms of the ~1 ms a 41-marker frame took, profiled on 135_02 at L2). The loops below do the same
-arithmetic in one compiled call each. Each mirrors the numpy formulation it replaced, which its docstring
-names, and `tests/test_kernels.py` checks it against that formulation.
+Why hand-written loops: a subject has ~40 markers, so every numpy call in the tracker (`tracker`,
+`partners`, `segment_search`, `layouts`) works on arrays of a few hundred numbers and costs its ~1-3 us of
+call overhead, not arithmetic. A frame made ~150 such calls (~0.5 ms of the ~1 ms a 41-marker frame took,
+profiled on 135_02 at L2). The loops below do the same arithmetic in one compiled call each. Each mirrors
+the numpy formulation it replaced, which its docstring names, and `tests/test_kernels.py` checks it against
+that formulation.
 
 With them a 41-marker frame (135_02 at L2, paced at 120 Hz: `python3 -m benchmarks.speed engine-cost`)
 went from 1.03 to ~0.5 ms mean, measured back to back on one machine. Paced, a numpy call costs more: the
@@ -295,7 +296,7 @@ def rigid_predict(partners, snap, dist_var, pos, labeled, which):
     the partners' weighted RMS misfit, and swing (M,), how far [m] skin wobble (SKIN_M) could turn the
     marker about the partners' long axis (large when they lie nearly in a line); NaN where fewer than 3
     partners are usable.
-    (tracker.rigid_predictions)"""
+    (partners.rigid_predictions)"""
     m = pos.shape[0]
     n_part = partners.shape[1]
     pred = np.full((m, 3), np.nan)
@@ -463,7 +464,7 @@ def rigid_motion(a, b):
 def distance_misfit(partners, dist_n, mean, var, cur, labeled, rows):
     """The median z = |d - mean| / (sigma + 3 mm) of each marker in `rows` over (up to) its 3 partners
     with the smallest sigma among those labeled now and sampled at least 10 times; NaN with fewer than
-    2 such partners or when the marker is not labeled. Returns (M,), NaN but at `rows`. (tracker.distance_misfit)"""
+    2 such partners or when the marker is not labeled. Returns (M,), NaN but at `rows`. (partners.distance_misfit)"""
     n_rows = rows.shape[0]
     n_part = partners.shape[1]
     out = np.full(cur.shape[0], np.nan)
@@ -537,7 +538,7 @@ def label_errors(cur, pred, use):
 def update_distances(dist_n, mean, var, slow_mean, slow_var, pos, labeled, alpha_min, slow_alpha):
     """Running mean and variance of the distances between labeled markers, in place: a plain mean over
     the first 1/alpha samples, then an exponential one with weight alpha_min (slow_alpha for the
-    long-memory pair). (tracker._update_distances)"""
+    long-memory pair). (partners._update_distances)"""
     m = pos.shape[0]
     for i in range(m):
         if not labeled[i]:
@@ -585,7 +586,7 @@ def _misfit(H, sq, cnt):
 @_jit
 def kabsch_rms(A, B, w):
     """RMS misfit (C,) of the best rigid motion taking A onto B, both (C, N, 3), over the points where w
-    (C, N) is True (`_misfit`). (tracker._kabsch_rms)"""
+    (C, N) is True (`_misfit`). (layouts._kabsch_rms)"""
     n_c, n_p = A.shape[0], A.shape[1]
     out = np.empty(n_c)
     H = np.empty((3, 3))
@@ -719,7 +720,7 @@ def commit_motion(pos, vel, acc, vel_measured, hidden, was_labeled, cur, labeled
 @_jit
 def snapshot(snap, cur, labeled):
     """Row i of snap (M, M, 3), for each labeled marker i, := every labeled marker's position now (NaN for
-    the others), in place. (tracker._snapshot)"""
+    the others), in place. (partners._snapshot)"""
     m = cur.shape[0]
     for i in range(m):
         if not labeled[i]:
@@ -788,7 +789,7 @@ def relabel_candidates(layout, cur, where, provisional, lab, slot, maps, handove
     rms (C,), how well the relabelled points fit the layout (Kabsch misfit), and blocked (C,): a label
     would jump farther from where its marker is (`where`: now, or last known) than jump_m, or than
     handover_m when handed to an unlabeled marker, or is handed over from a marker not on probation
-    (`provisional` <= 0: tracked all along). (the batch in tracker._relabel_by_shape)"""
+    (`provisional` <= 0: tracked all along). (the batch in layouts._relabel_by_shape)"""
     n_c, n = maps.shape
     rms = np.empty(n_c)
     blocked = np.zeros(n_c, np.bool_)
@@ -834,7 +835,7 @@ def segment_fits(off, joint, pts, perms, max_rms):
     off[.], (M, 3)) on point pts[j] (n, 3). Returns rms (C,), the Kabsch misfit of each, and joint (C,), how
     far that registration puts the segment's origin (the offsets' zero) from `joint` (3,); inf for the
     labellings misfitting by max_rms or more (their rotation is never formed).
-    (tracker._rival_fits, which made one numpy Kabsch per labelling: 1680 of them for a torso's eight
+    (segment_search._rival_fits, which made one numpy Kabsch per labelling: 1680 of them for a torso's eight
     markers against four points, 0.15 s in one frame of eight subjects.)"""
     n_c, n = perms.shape
     rms = np.empty(n_c)
@@ -876,7 +877,7 @@ def segment_fits(off, joint, pts, perms, max_rms):
 
 @_jit
 def joint_hypotheses(base_a, base_b, off, points, mk, pt, los, pool, near, pinned, tol_m, inlier_m):
-    """Every hypothesis of a segment search around its joint registered at once (tracker._around_joint,
+    """Every hypothesis of a segment search around its joint registered at once (segment_search._around_joint,
     which made a numpy registration and placement per hypothesis: 5-15 ms on a frame of eight subjects
     whose unclaimed points offered a lost forearm hundreds). Hypothesis h puts marker mk[h, c] (offsets
     `off`) on point pt[h, c] (`points`), c < 2 (-1: none), beside the segment's base rows: its joint and

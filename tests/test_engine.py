@@ -210,7 +210,7 @@ def test_segments_are_searched_for_only_around_a_recent_fit(monkeypatch):
         ages.append((st.last_t_ns - st.skel_t_ns) * 1e-9 * rate_hz + 1)  # last_t_ns: the previous frame's
         return real(model, st, points, *args)
 
-    monkeypatch.setattr(tracker, "_search_segments", spy)
+    monkeypatch.setattr(tracker, "_search_segments", spy)  # (the name `tracker.step` calls it by)
     rate_hz = 120.0
     seq = corrupt(perform(4, duration_s=10.0, rate_hz=rate_hz).recording, "L3", 4)
     s = score(seq, run(seq, Engine(EngineConfig(tpose_auto=False))), "seeded", seq.seed_frames)
@@ -489,7 +489,7 @@ def test_subjects_seeded_together_do_their_periodic_work_on_different_frames(mon
         checks.setdefault(frame[0], []).append(model.name)
         return real(model, st, *args)
 
-    monkeypatch.setattr(tracker, "_relabel_by_shape", spy)
+    monkeypatch.setattr(tracker, "_relabel_by_shape", spy)  # (the name `tracker.step` calls it by)
     rec, _ = multi_perform([8, 9, 10, 11], spacing_m=2.5, duration_s=4.0)
     seq = corrupt(rec, "L0", 8)
     engine = Engine()
@@ -847,7 +847,7 @@ def test_refinement_corrects_a_skeleton_and_refuses_to_stretch_its_bones():
     from scipy.spatial.transform import Rotation
 
     from service.engine import REFINE_MAX_JOINT_SHIFT_M, refined_model
-    from service.tracker import SubjectModel
+    from service.track_state import SubjectModel
 
     def refine(perf, model):  # on the last 2 s of the performance, as the engine would
         R0 = Rotation.from_quat(perf.rotations_xyzw[-1]).as_matrix()
@@ -924,7 +924,7 @@ def test_a_calibration_that_exchanged_two_segments_markers_is_redone_from_the_hi
 
     from service.calibration import calibrate_from_history, mirror_index
     from service.engine import recalibrated_model
-    from service.tracker import SubjectModel
+    from service.track_state import SubjectModel
 
     perf = perform(3, duration_s=6.0)
     truth = np.asarray(perf.marker_segment)
@@ -990,7 +990,7 @@ def test_a_subject_lying_still_is_calibrated_again_with_bones_of_its_own():
     that was never sized from a standing frame."""
     from service.calibration import calibrate_from_history, mirror_index
     from service.engine import recalibrated_model
-    from service.tracker import SubjectModel
+    from service.track_state import SubjectModel
 
     perf = perform(3, duration_s=2.0, heading_rad=0.0)
     twins = mirror_index(perf.marker_names)

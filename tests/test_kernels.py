@@ -1,6 +1,6 @@
 """The compiled loops against the plain numpy formulations they replaced (written out here as references),
 on random data with the awkward cases: unlabeled markers, missing partners, NaN snapshots, reflections.
-(`kabsch_rms` is checked against a Kabsch by scipy through its wrapper, in test_tracker.)"""
+(`kabsch_rms` is checked against a Kabsch by scipy through its wrapper, in test_layouts.)"""
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -281,10 +281,10 @@ def test_rigid_motion_matches_scipy_and_keeps_a_rotation_for_mirrored_points():
 
 
 def test_joint_hypotheses_register_and_place_as_numpy_did_one_by_one():
-    """Each hypothesis as `tracker._around_joint` scored it with numpy: registered (Kabsch) with the
+    """Each hypothesis as `segment_search._around_joint` scored it with numpy: registered (Kabsch) with the
     segment's joint and labeled markers (without the joint when pinned and one marker), kept if its
     residuals pass, and every lost marker placed on the nearest candidate point within the inlier radius."""
-    from service.tracker import _norm
+    from service.track_state import _norm
 
     rng = np.random.default_rng(9)
     off = rng.normal(0.0, 0.06, (8, 3))
