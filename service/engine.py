@@ -89,6 +89,7 @@ REFINE_EVERY_FRAMES = 240  # ... at most once per this many frames (then twice a
 #: Clouthier KneeltoProne at L3).
 REFINE_MAX_JOINT_SHIFT_M = 0.1
 REFINE_APPLY_S = 1.0  # a refinement started at frame f takes effect this much stream time later (later behind a queue)
+LAYOUT_REMEASURE_S = 1.0  # a T-pose subject's marker layouts are measured again on its motion this often (`_maybe_remeasure_layouts`)
 #: A seeded subject whose solves miss its markers by more than this [m] RMS on RECALIBRATE_POOR_FRAMES frames
 #: is calibrated again from its labeled history (`recalibrated_model`); after one that was refused, not
 #: before RECALIBRATE_EVERY_S of stream time (then twice as long, ...). A seed taken with a hand resting on
@@ -175,6 +176,8 @@ class _Subject:
     next_recalibration_frame: int = 0
     recalibration_interval: int = 0  # frames between recalibrations (doubles each time)
     between_frame: int = -1  # the state's frame count `_between_frames` last ran at
+    layout_job: tuple | None = None  # (future, frame to apply it at): a T-pose subject's layouts remeasured
+    next_layout_frame: int = 0
 
 
 @dataclasses.dataclass
@@ -509,6 +512,37 @@ class Engine:
         job = self._worker().submit(refined_model, self._solver_spec, s.model, hist, st.t_root_m.copy(), st.R_parent_segment.copy())
         s.refine_job = (job, st.frames + delay)
 
+    def _maybe_remeasure_layouts(self, s: _Subject) -> None:
+        """A subject found in its T-pose had its segments' marker layouts measured on that pose, held still:
+        it bends no joint, so a segment given markers from both sides of one (a straight arm's elbow and
+        wrist markers, all on the upper arm) reads as rigid to a millimetre, and the layout check
+        (`layouts._relabel_by_shape`) takes the joint, once bent, for permuted labels. Every
+        LAYOUT_REMEASURE_S the motion since measures them again on its own labels (the only ones it has;
+        `calibration.layout_residuals`, in the helper process, applied REFINE_APPLY_S of stream time later
+        as a refinement is), and each marker keeps the worse of its residuals: a marker a bend moved in its
+        segment leaves the check for good. (Squat in tpose mode at L2, seed 1: the right upper arm's four
+        labels misfit its T-pose layout by 46-53 mm against 1.7 mm measured still, the check cycled them,
+        and they stayed so for the remaining 12 s.) A seeded subject's layouts are measured on the given
+        labels of its seed, which moved: they are left alone."""
+        model, st = s.model, s.state
+        if s.layout_job is not None:
+            future, apply_at = s.layout_job
+            if st.frames < apply_at:
+                return
+            s.layout_job = None
+            bent = _result(future, "layout measurement")
+            if bent is not None and model.layout_rms_m is not None and len(bent) == len(model.layout_rms_m):
+                s.model = dataclasses.replace(model, layout_rms_m=np.where(np.isfinite(bent), np.maximum(model.layout_rms_m, bent), model.layout_rms_m))
+            return
+        if not s.auto or not model.has_skeleton or model.layout_rms_m is None or st.frames < s.next_layout_frame:
+            return
+        s.next_layout_frame = st.frames + self._frames(s, LAYOUT_REMEASURE_S)
+        delay = max(self._frames(s, REFINE_APPLY_S), self._queue_frames(s))
+        hist = np.stack(s.history)
+        hist[:, ~np.isfinite(model.layout_rms_m)] = np.nan  # out of the check already (a marker a refinement moved)
+        job = self._worker().submit(calibration.layout_residuals, hist, model.marker_segment, model.layout_offsets_m)
+        s.layout_job = (job, st.frames + delay)
+
     def _maybe_recalibrate(self, s: _Subject) -> bool:
         """Start a recalibration (`recalibrated_model`, in the helper process, in the refinement's job slot)
         once a seeded subject's fit has missed by more than RECALIBRATE_RMS_M on RECALIBRATE_POOR_FRAMES
@@ -567,7 +601,8 @@ class Engine:
         calibration). Counted from the jobs' schedule, not their progress (a job done but not yet taken
         still counts: the estimate errs late, never early), so `label` and the daemon still take each
         result at the same frame."""
-        queued = sum((o.calibration_job is not None) + (o.refine_job is not None) for o in self._subjects.values())
+        queued = sum((o.calibration_job is not None) + (o.refine_job is not None) + (o.layout_job is not None)
+                     for o in self._subjects.values())
         return (queued + 1) * self._frames(s, HELPER_JOB_S)
 
     @staticmethod
@@ -815,6 +850,7 @@ class Engine:
         s.between_frame = st.frames
         self._maybe_calibrate(s)
         self._maybe_refine(s)
+        self._maybe_remeasure_layouts(s)
 
     @staticmethod
     def _pose_fields(s: _Subject) -> dict:
