@@ -296,6 +296,31 @@ def test_a_tpose_subject_takes_the_markers_hidden_when_it_was_found_at_the_end_o
     assert not unlabeled_after_blink, "the marker back from its blink was not tracked on"
 
 
+def test_a_point_that_joins_a_tpose_subject_at_the_end_of_its_trial_does_not_undo_its_tpose():
+    """A point that appears just after the T-pose is found and rides 0.5 m under a hand through the trial (a
+    ghost that lives long, a stray marker) joins the subject when its trial ends. The T-pose is judged on
+    the markers it was found with, so the subject is kept; judged with the point, the arms were off level,
+    and the subject was dropped and found again as S2, 72 frames later."""
+    seq = corrupt(perform(7, duration_s=3.0).recording, "L0", 7)
+    window = EngineConfig().tpose_window_frames
+    hand = int(np.argmax(np.abs(seq.points_m[0][:, 1] - seq.points_m[0][:, 1].mean())))  # the farthest out
+    hand_marker = seq.truth[0][hand]
+    points, truth = [], []
+    for f, (pts, tr) in enumerate(zip(seq.points_m, seq.truth)):
+        if 5 <= f <= window + 10:
+            pts = np.vstack([pts, pts[tr == hand_marker] - [0.0, 0.0, 0.5]])
+            tr = np.append(tr, -1)
+        points.append(pts), truth.append(tr)
+    seq = CorruptedSequence(points, truth, seq.marker_names, seq.rate_hz)
+    engine = Engine(EngineConfig(tpose_auto=True))
+    stats = []
+    given = run(seq, engine, seeded=False, stats=stats)
+    assert [st.new_subjects for st in stats if st.new_subjects] == [("S1",)] and engine.subjects() == ["S1"]
+    assert len(engine.describe("S1")["markers"]) == len(seq.marker_names) + 1
+    s = score(seq, given, "tpose", 0)
+    assert s.accuracy >= 0.99, s.worst_markers()
+
+
 def test_a_tpose_left_within_the_trial_is_no_subject():
     """A cloud found in a T-pose that lowers its arms before its trial ends (`tpose_window_frames`) was
     labeled meanwhile, and is dropped at the trial's end: a person must hold the T-pose to become a
