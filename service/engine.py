@@ -140,6 +140,7 @@ CALIBRATE_APPLY_S = 0.5
 #: and the scan's 8 subjects p99 84 -> 178 ms (4 sustained either way); not taken.
 HELPER_JOB_S = 0.45
 DISCOVER_FRAMES = 60  # frames an unexplained point must ride on an automatic subject to become a marker
+DISCOVER_REFIND_Z = 3.0  # ... unless it keeps a lost marker's distances to its partners this well (`_lost_marker_of`)
 #: (`_name_mirrors`) a free point this near a named marker's mirror image may be its twin (the tennis
 #: player's RBHD sat 2.5-2.8 cm from LBHD's; an unnamed point of HDM_mm 3.1-3.6 cm from RBAC's: a thin
 #: margin, so the looks below must agree too), looked for every 3rd frame, on the last frame's state (not to
@@ -715,6 +716,12 @@ class Engine:
             if len(track) < DISCOVER_FRAMES:
                 continue
             if self._rides_on_body(track):
+                lost = _lost_marker_of(st, track)
+                if lost is not None:  # one of its own, back: tracked on under its id
+                    if c[0] == f:
+                        tracker.resume(st, np.array([lost]), track[-1][1][None])
+                    s.candidates = [o for o in cands if o is not c]
+                    return
                 self._add_markers(s, frame, [track])
                 s.candidates = []  # their snapshots have the old marker count
                 return
@@ -935,6 +942,30 @@ class Engine:
             has_pose=s.model.has_skeleton,
             source=res.source,
         )
+
+
+def _lost_marker_of(st, track, n_looks: int = 12) -> int | None:
+    """The subject's own marker, unlabeled now, that a point riding on its body is (`_discover`), if one
+    is clearly: the one whose long-run distances to its most rigid partners the point keeps best over the
+    track (median z of `partners._misfit_at`, over n_looks of its frames, under DISCOVER_REFIND_Z, and
+    under half the next best's). A marker lost while in view (its fit misplaced it) was otherwise found
+    again as a new marker: two ids for one marker for the rest of the run (HDM_mm in tpose mode at L3:
+    a right foot's three markers, 900-1000 frames each). (Tpose mode, seeds 6-17: HDM_mm L3 93.48 ->
+    93.92 %, L2 95.88 -> 95.95 %; squat L3 87.61 -> 87.86 %, L2 unchanged; seeds 0-5 up or unchanged.)"""
+    lost = np.flatnonzero(st.ever_seen & ~st.labeled)
+    if not len(lost) or len(track[0]) < 4 or len(track[-1][2]) != len(st.labeled):
+        return None
+    looks = track[:: max(1, len(track) // n_looks)]
+    z = np.array([[partners._misfit_at(st, k, p, pos, lab) for _, p, pos, lab in looks] for k in lost])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a marker with no partners labeled: all NaN
+        z = np.nanmedian(z, axis=1)
+    z = np.where(np.isfinite(z), z, np.inf)
+    order = np.argsort(z)
+    best = z[order[0]]
+    if best < DISCOVER_REFIND_Z and (len(z) == 1 or z[order[1]] > 2.0 * best):
+        return int(lost[order[0]])
+    return None
 
 
 def _result(future, what: str):

@@ -321,6 +321,46 @@ def test_a_point_that_joins_a_tpose_subject_at_the_end_of_its_trial_does_not_und
     assert s.accuracy >= 0.99, s.worst_markers()
 
 
+def test_a_point_that_keeps_a_lost_markers_distances_is_that_marker_not_a_new_one():
+    """`_discover` asks `_lost_marker_of` before it makes a riding point a new marker: a point that keeps a
+    lost marker's long-run distances to its rigid partners is that marker (a foot marker lost in view came
+    back as a second id for the rest of the run: HDM_mm in tpose mode at L3). The right ankle's own track
+    is found as the ankle; the same track 6 cm off is none of the lost markers. With two markers lost, the
+    ankle and a twin 1 cm from it, a track midway between them is left to be a new marker rather than
+    guessed, and the twin's own track is the twin."""
+    from service import tracker
+    from service.engine import _lost_marker_of
+    from service.track_state import SubjectModel
+
+    perf = perform(3, duration_s=4.0)
+    pts = perf.recording.points_m
+    names = perf.marker_names
+    model = SubjectModel("P", names, perf.marker_segment, perf.marker_offsets_m, perf.joint_offsets_m, True)
+    ankle = next(i for i, n in enumerate(names) if n.endswith("RANK"))
+    st = tracker.new_state(model, pts[239], 0, pts[:240])
+    st.labeled[ankle] = False
+
+    def track(offset, frames=range(240, 300)):
+        lab = np.ones(len(names), bool)
+        lab[ankle] = False
+        return [(f, pts[f, ankle] + offset, pts[f].copy(), lab) for f in frames]
+
+    assert _lost_marker_of(st, track(np.zeros(3))) == ankle
+    assert _lost_marker_of(st, track(np.array([0.06, 0.0, 0.0]))) is None
+    # a twin: another lost marker 1 cm from the ankle on its segment keeps the same distances about as well
+    twin_names = names + ("Performer:RANK2",)
+    twin_pts = np.concatenate([pts, pts[:, [ankle]] + [0.0, 0.01, 0.0]], axis=1)
+    twin = SubjectModel("P", twin_names, np.append(perf.marker_segment, perf.marker_segment[ankle]),
+                        np.vstack([perf.marker_offsets_m, perf.marker_offsets_m[ankle]]), perf.joint_offsets_m, True)
+    st2 = tracker.new_state(twin, twin_pts[239], 0, twin_pts[:240])
+    st2.labeled[[ankle, -1]] = False
+    lab2 = np.ones(len(twin_names), bool)
+    lab2[[ankle, -1]] = False
+    midway = [(f, twin_pts[f, ankle] + [0.0, 0.005, 0.0], twin_pts[f].copy(), lab2) for f in range(240, 300)]
+    assert _lost_marker_of(st2, midway) is None
+    assert _lost_marker_of(st2, [(f, twin_pts[f, -1], twin_pts[f].copy(), lab2) for f in range(240, 300)]) == len(twin_names) - 1
+
+
 def test_a_tpose_left_within_the_trial_is_no_subject():
     """A cloud found in a T-pose that lowers its arms before its trial ends (`tpose_window_frames`) was
     labeled meanwhile, and is dropped at the trial's end: a person must hold the T-pose to become a
