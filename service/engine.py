@@ -526,14 +526,14 @@ class Engine:
         and they stayed so for the remaining 12 s.) A seeded subject's layouts are measured on the given
         labels of its seed, which moved: they are left alone."""
         model, st = s.model, s.state
-        if s.layout_job is not None:
-            future, apply_at = s.layout_job
-            if st.frames < apply_at:
-                return
-            s.layout_job = None
-            bent = _result(future, "layout measurement")
-            if bent is not None and model.layout_rms_m is not None and len(bent) == len(model.layout_rms_m):
-                s.model = dataclasses.replace(model, layout_rms_m=np.where(np.isfinite(bent), np.maximum(model.layout_rms_m, bent), model.layout_rms_m))
+        job = s.layout_job
+        if job is not None:
+            if st.frames >= job[1]:  # (future, frame to apply it at)
+                s.layout_job = None
+                bent = _result(job[0], "layout measurement")
+                was = model.layout_rms_m
+                if bent is not None and was is not None and len(bent) == len(was):
+                    s.model = dataclasses.replace(model, layout_rms_m=np.where(np.isfinite(bent), np.maximum(was, bent), was))
             return
         if not s.auto or not model.has_skeleton or model.layout_rms_m is None or st.frames < s.next_layout_frame:
             return
@@ -686,7 +686,8 @@ class Engine:
     def _discover(self, s: _Subject, frame, points, free) -> None:
         """Markers hidden while a subject stood in its T-pose join it later: an unclaimed point that stays
         near the subject for DISCOVER_FRAMES frames, keeping its distances to the subject's nearest markers
-        (it rides on the body: a ghost drifts, and lives 0.08 s on average), becomes a new marker."""
+        (it rides on the body: a ghost drifts, and lives 0.08 s on average), becomes a new marker, unless
+        it is one of the subject's own lost markers (`_lost_marker_of`), which is then tracked on."""
         st = s.state
         if not st.labeled.any() or len(s.model.markers) >= self.config.max_markers:
             s.candidates.clear()
