@@ -3,13 +3,14 @@ judged by. One realization of a file moves by a point or more when a single casc
 lasts, a marker lost for good), so a change is judged by the mean over many, and by its worst.
 
     python3 -m benchmarks.realizations --seeds 0-17 [--files 85_12 tennis] [--levels L2 L3]
-                                       [--out runs.json] [--compare before.json]
+                                       [--out runs.json] [--compare before.json] [--mode tpose]
 
 Runs the adaptive engine in seeded mode on every labeled file x level x corruption seed (each file capped
 at its first 25 s, as the benchmark), in 2 processes: 8 files x L2/L3 x 18 seeds take ~5 min. Prints, per
 file and level, the mean and the worst accuracy, the mean precision and the skeleton solves' residual p90
 (the median and the worst of the runs: is the skeleton still on its markers?); with --compare, beside those
-of an earlier run's JSON, and every run that moved by 0.005 % or more.
+of an earlier run's JSON, and every run that moved by 0.005 % or more. `--mode tpose` runs the files with a
+T-pose (`benchmarks.run.TPOSE_FILES`: HDM_mm, squat) with nothing given instead, scored from frame 0.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.run import (DEFAULT_DATA, FULL_MAX_S, UsageError, labeled_files, plan, run_jobs,
+from benchmarks.run import (DEFAULT_DATA, FULL_MAX_S, TPOSE_FILES, UsageError, labeled_files, plan, run_jobs,
                             select_files)
 from benchmarks.skeleton import parse_seeds
 
@@ -34,14 +35,16 @@ DEV_FILES = ("cmu/135_02.c3d", "cmu/85_12.c3d", "cmu/85_02.c3d", "cmu/07_01.c3d"
              "kineticstoolkit/kinematics_tennis_serve_2players.c3d")
 
 
-def run(data_dir: Path, files: list[str], levels: list[str], seeds: list[int], workers: int = 2) -> list[dict]:
+def run(data_dir: Path, files: list[str], levels: list[str], seeds: list[int], workers: int = 2,
+        mode: str = "seeded") -> list[dict]:
     """One row per file x level x seed: accuracy, precision [%], true points, wrong, unlabeled, the skeleton
     solves' RMS residual p90 [mm] (NaN without solves: how far the skeleton strays from the markers on its
-    worse frames; a calibration that puts a segment's markers on another reads hundreds), error."""
+    worse frames; a calibration that puts a segment's markers on another reads hundreds), error. `mode`
+    "tpose" runs the files of `benchmarks.run.TPOSE_FILES` among `files` with nothing given."""
     from service.config import ServiceConfig
 
     jobs, _ = plan(data_dir, files, levels, FULL_MAX_S)
-    jobs = [dataclasses.replace(j, seed=s) for j in jobs if j.mode == "seeded" and j.variant == "adaptive" for s in seeds]
+    jobs = [dataclasses.replace(j, seed=s) for j in jobs if j.mode == mode and j.variant == "adaptive" for s in seeds]
     results = run_jobs(data_dir, jobs, workers, str(Path(ServiceConfig().cache_dir).expanduser()))
     rows = [dict(file=r.job.file, level=r.job.level, seed=r.job.seed, acc=100 * r.score.accuracy,
                  prec=100 * r.score.precision, n=int(r.score.n_true_points), wrong=int(r.score.n_wrong),
@@ -102,6 +105,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", type=Path, help="write the runs as JSON here")
     parser.add_argument("--compare", type=Path, help="an earlier --out JSON to print beside")
+    parser.add_argument("--mode", default="seeded", choices=["seeded", "tpose"],
+                        help="seeded (default), or tpose: nothing given, on the files with a T-pose (HDM_mm, squat)")
     args = parser.parse_args(argv)
     try:
         try:
@@ -117,11 +122,14 @@ def main(argv: list[str] | None = None) -> int:
             except (OSError, ValueError) as e:
                 raise UsageError(f"cannot read {args.compare} as an earlier run's JSON ({e})") from None
         available = labeled_files(args.data)
-        files = select_files(available, args.files, quick=False) if args.files else [f for f in DEV_FILES if f in available]
+        default = TPOSE_FILES if args.mode == "tpose" else DEV_FILES
+        files = select_files(available, args.files, quick=False) if args.files else [f for f in default if f in available]
+        if args.mode == "tpose" and not set(files) & set(TPOSE_FILES):
+            raise UsageError(f"none of the files is one with a T-pose ({', '.join(TPOSE_FILES)})")
     except UsageError as e:
         print(f"benchmarks.realizations: {e}", file=sys.stderr)
         return 2
-    rows = run(args.data, files, args.levels, seeds, args.workers)
+    rows = run(args.data, files, args.levels, seeds, args.workers, args.mode)
     if args.out is not None:
         args.out.write_text(json.dumps(rows, indent=1) + "\n")
     print("\n".join(summary(rows, before)))

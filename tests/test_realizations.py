@@ -4,6 +4,7 @@ themselves are `benchmarks.run`'s jobs, tested in test_benchmark_run.py.)"""
 from __future__ import annotations
 
 from benchmarks.realizations import main, summary
+from tests.conftest import data_path
 
 
 def _row(file, level, seed, acc, prec=100.0, fit_p90_mm=20.0):
@@ -37,3 +38,11 @@ def test_the_command_refuses_bad_seeds_data_and_comparisons_in_one_sentence(tmp_
     assert main(["--compare", str(bad)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 3 and all(line.startswith("benchmarks.realizations: ") for line in err), err
+
+
+def test_tpose_mode_refuses_files_without_a_t_pose(capsys):
+    data_path("cmu/135_02.c3d")  # (the shared recordings: fails under CI=true if missing)
+    assert main(["--mode", "tpose", "--files", "135_02"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["benchmarks.realizations: none of the files is one with a T-pose "
+                   "(hdm05/HDM_mm_01-02_03_120.c3d, georgiatech/squat.c3d)"], err
