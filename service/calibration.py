@@ -49,6 +49,12 @@ _FOOT_FWD = 0.11
 _SHIN_ABOVE_FOOT = 0.04  # (`_body_frame`) a foot marker this far above the others [height] is a shin marker
 _FOOT_LENGTH = 0.16  # heel to toe tip, with a marker's reach: Winter's 0.152 of height
 _PELVIS_RISE = 0.04  # the pelvis's bone across the hips runs this far above the hip joints
+# A subject kneeling upright (knees on the floor, thighs and trunk upright, shins flat on the floor behind):
+# its knee joints sit _KNEEL_KNEE_Z above the floor, so its trunk stands _KNEEL_DROP lower than standing and
+# the top of its head is at _KNEEL_TOP of its standing height.
+_KNEEL_KNEE_Z = 0.03
+_KNEEL_DROP = _KNEE_Z - _KNEEL_KNEE_Z
+_KNEEL_TOP = 1.0 - _KNEEL_DROP
 # a marker inside the shoulders' width is an arm marker within this of the estimated arm bones (an upper-arm
 # marker of an arm held against the chest sat 0.045-0.06 from them and went to the torso); above the
 # shoulder joint, less (the acromion marker rides the shoulder girdle, which the torso carries)
@@ -151,6 +157,42 @@ def _body_frame(P: np.ndarray) -> tuple[BodyFrame, float]:
     return BodyFrame(np.stack([forward, left, up], axis=1), origin, float(h)), abs(float(sum(votes)))
 
 
+def _arm_floor(kneel: bool) -> float:
+    """The height [heights] above which markers out beside the body are taken for arm markers: above the
+    knees standing; above the hips kneeling, where the thighs and shins lie lower (`_kneeling_frame`)."""
+    return _HIP_Z if kneel else 0.3
+
+
+def _kneeling_frame(P: np.ndarray) -> BodyFrame:
+    """Body frame of a person kneeling upright (see _KNEEL_TOP) from their marker positions P (M, 3): its
+    origin is where a standing person's feet would be, _KNEEL_DROP below the floor, so that the template's
+    trunk and thighs stand where they kneel, and its height is the standing height. Left-right is the
+    shoulder band's long axis, as standing; forward is away from the markers on the floor (the shins and
+    feet lie behind the knees)."""
+    P = P[np.isfinite(P[:, 0])]
+    if len(P) < 8:
+        raise CalibrationError(f"only {len(P)} markers visible; at least 8 are needed")
+    floor, top = P[:, 2].min(), P[:, 2].max()
+    h = (top - floor) / _KNEEL_TOP
+    if not 1.0 < h < 2.4:
+        raise CalibrationError(f"cloud is {top - floor:.2f} m tall; a person kneeling upright is {_KNEEL_TOP:.2f}-{2.4 * _KNEEL_TOP:.2f} m")
+    z = (P[:, 2] - floor) / h + _KNEEL_DROP  # heights of the standing template
+    upper = P[z > _HIP_Z, :2]
+    low = P[z < _KNEEL_DROP + 0.06, :2]
+    band = P[(z > 0.72) & (z < 0.9), :2]
+    ref = band if len(band) >= 4 else upper
+    if len(upper) < 4 or len(low) < 2:
+        raise CalibrationError("no trunk above markers on the floor: the person is not kneeling upright")
+    _, V = np.linalg.eigh(np.cov((ref - ref.mean(0)).T))
+    fwd = np.array([-V[1, 1], V[0, 1]])
+    if (low.mean(0) - upper.mean(0)) @ fwd > 0:
+        fwd = -fwd
+    forward = np.array([fwd[0], fwd[1], 0.0])
+    up = np.array([0.0, 0.0, 1.0])
+    c = upper.mean(0)
+    return BodyFrame(np.stack([forward, np.cross(up, forward), up], axis=1), np.array([c[0], c[1], floor - _KNEEL_DROP * h]), float(h))
+
+
 def heading_votes(history_m: np.ndarray, n: int = 24) -> list[tuple[np.ndarray, np.ndarray]]:
     """Up to n frames of the history, evenly spread, each as (its markers (M, 3), which way it faces (3,)
     weighted by how sure it is, `_body_frame`), for `_vote_heading`. Each frame's hidden markers are filled
@@ -205,12 +247,14 @@ def _seg_dist(q, a, b):
     return np.linalg.norm(q - (a + t[:, None] * ab), axis=1)
 
 
-def _template(positions_m: np.ndarray, history_m: np.ndarray | None, feet_of: np.ndarray | None, votes: list | None):
+def _template(positions_m: np.ndarray, history_m: np.ndarray | None, feet_of: np.ndarray | None, votes: list | None,
+              kneel: bool = False):
     """`calibrate`'s template of an upright subject on one frame of its markers (M, 3): (body frame, the
     markers in body coordinates [heights], joint positions {segment: (3,)} and bone tips there, cost (M, 14):
-    each marker's distance from each segment's bone less its capsule radius [heights])."""
-    bf = body_frame(positions_m)
-    if history_m is not None and len(history_m) >= 10:
+    each marker's distance from each segment's bone less its capsule radius [heights]). `kneel`: of a
+    subject kneeling upright (`_kneeling_frame`), its shins and feet flat on the floor behind the knees."""
+    bf = _kneeling_frame(positions_m) if kneel else body_frame(positions_m)
+    if history_m is not None and len(history_m) >= 10 and not kneel:  # (the votes read standing feet)
         bf = _vote_heading(bf, positions_m, heading_votes(history_m) if votes is None else votes)
     h = bf.height_m
     Q = (positions_m - bf.origin_m) @ bf.R_world_body / h  # body coordinates, in heights
@@ -220,9 +264,11 @@ def _template(positions_m: np.ndarray, history_m: np.ndarray | None, feet_of: np
     J["torso"] = np.array([0.0, 0.0, _THORACIC_Z])
     J["head"] = np.array([0.0, 0.0, _NECK_Z])
     tips = {}
+    heels = {"l": [-0.04, 0.0, -0.03], "r": [-0.04, 0.0, -0.03]}  # the heel's end of the foot, from the ankle
+    bends = {}  # segment -> its rotation from its parent in the template's pose (kneeling), else none
     for side, s in (("l", 1.0), ("r", -1.0)):
         sh = np.array([0.0, s * _SHOULDER_Y, _SHOULDER_Z])
-        ok = np.isfinite(Q[:, 0]) & (Q[:, 2] > 0.3)
+        ok = np.isfinite(Q[:, 0]) & (Q[:, 2] > _arm_floor(kneel))
         arm = Q[ok & ((s * Q[:, 1] > _SHOULDER_Y + 0.03) | ((s * Q[:, 1] > 0.09) & (np.linalg.norm(Q - sh, axis=1) < _UPPERARM + _FOREARM_HAND)))]
         # the elbow: toward the markers about one upper-arm length from the shoulder; the hand: the
         # farthest arm marker. Straight arms (T-pose, hanging) and bent ones alike.
@@ -255,6 +301,14 @@ def _template(positions_m: np.ndarray, history_m: np.ndarray | None, feet_of: np
         # come from the first calibration, whose legs `_uncross_sides` has checked (feet taken by the
         # midline between them came out crossed mid-stride, and the legs above them with them, cmu/07_01).
         ankle = np.array([0.0, s * _HIP_Y, _ANKLE_Z])
+        if kneel:
+            leg = _kneeling_leg(Q, s)
+            J[f"{side}_thigh"], J[f"{side}_shank"], J[f"{side}_foot"] = hip, leg["knee"], leg["ankle"]
+            tips[f"{side}_thigh"], tips[f"{side}_shank"], tips[f"{side}_foot"] = leg["knee"], leg["ankle"], leg["tip"]
+            tips[f"{side}_upperarm"] = J[f"{side}_forearm"]
+            heels[side] = leg["heel"]
+            bends.update({S[f"{side}_{stem}"]: R for stem, R in leg["bends"].items()})
+            continue
         if feet_of is not None:
             on_foot = np.isfinite(Q[:, 0]) & (feet_of == S[f"{side}_foot"])
             if on_foot.any():
@@ -272,21 +326,68 @@ def _template(positions_m: np.ndarray, history_m: np.ndarray | None, feet_of: np
     bones["pelvis"].append((J["l_thigh"] + [0, 0, _PELVIS_RISE], J["r_thigh"] + [0, 0, _PELVIS_RISE]))
     # the shoulder girdle, short of the shoulder joints so upper-arm markers go to the arm
     bones["torso"].append((J["l_upperarm"] * [1, 0.6, 1], J["r_upperarm"] * [1, 0.6, 1]))
-    bones["l_foot"].append((J["l_foot"] - [0.04, 0, 0.03], tips["l_foot"]))
-    bones["r_foot"].append((J["r_foot"] - [0.04, 0, 0.03], tips["r_foot"]))
+    bones["l_foot"].append((J["l_foot"] + heels["l"], tips["l_foot"]))
+    bones["r_foot"].append((J["r_foot"] + heels["r"], tips["r_foot"]))
     cost = np.full((len(Q), len(SEGMENTS)), np.inf)
     for k, name in enumerate(SEGMENTS):
         d = np.min([_seg_dist(Q, a, b) for a, b in bones[name]], axis=0)
         cost[:, k] = d - _RADIUS[name]
-    return bf, Q, J, tips, cost
+    return bf, Q, J, tips, cost, bends
 
 
-def template_misfit(positions_m: np.ndarray, marker_segment: np.ndarray) -> float:
+def _pitch(degrees: float) -> np.ndarray:
+    """The rotation by `degrees` about the body's left axis: positive swings a limb hanging down backwards."""
+    c, s_ = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    return np.array([[c, 0.0, s_], [0.0, 1.0, 0.0], [-s_, 0.0, c]])
+
+
+#: (`_kneeling_leg`) the legs tried for a subject kneeling upright, as (thigh, shin, foot) angles [degrees]
+#: from standing straight (the foot flat ahead), positive swinging backwards: the knee on the floor with the
+#: shin flat behind it, the instep on the floor or the toes tucked under; or the knee up with the foot
+#: planted flat (kneeling on one knee), the shin upright or slanted. Of legs the markers fit alike, the
+#: first is taken.
+KNEELING_LEGS = ((0.0, 90.0, 180.0), (0.0, 90.0, 90.0),
+                 (-90.0, 0.0, 0.0), (-90.0, 20.0, 0.0), (-90.0, -20.0, 0.0), (-90.0, 40.0, 0.0))
+
+
+def _kneeling_leg(Q: np.ndarray, s: float) -> dict:
+    """One leg of `_template`'s kneeling subject (s = 1 left, -1 right; Q its markers in body coordinates):
+    of KNEELING_LEGS, the one the markers on its side around and below the hips sit closest to the bones of
+    (or to the pelvis). {"knee", "ankle", "tip" (the toes) [heights], "heel" (from the ankle), "bends":
+    {"thigh" | "shank" | "foot": the segment's rotation from its parent in that pose, the zero pose standing
+    straight with the foot flat}}."""
+    hip = np.array([0.0, s * _HIP_Y, _HIP_Z])
+    thigh, shin = _HIP_Z - _KNEE_Z, _KNEE_Z - _ANKLE_Z
+    near = np.isfinite(Q[:, 0]) & (s * Q[:, 1] > 0.0) & (Q[:, 2] < _HIP_Z + 2 * _PELVIS_RISE)
+    mine = Q[near]
+    pelvis = _seg_dist(mine, hip * [1, 1, 1] + [0, 0, _PELVIS_RISE], hip * [1, -1, 1] + [0, 0, _PELVIS_RISE]) - _RADIUS["pelvis"]
+    best, best_misfit = None, np.inf
+    for a_thigh, a_shin, a_foot in KNEELING_LEGS:
+        down = np.array([0.0, 0.0, -1.0])
+        knee = hip + _pitch(a_thigh) @ down * thigh
+        ankle = knee + _pitch(a_shin) @ down * shin
+        foot_R = _pitch(a_foot)
+        tip = ankle + foot_R @ [_FOOT_FWD, 0.0, -0.02]
+        heel = foot_R @ [-0.04, 0.0, -0.03]
+        d = np.stack([
+            pelvis,
+            _seg_dist(mine, hip, knee) - _RADIUS["l_thigh"],
+            _seg_dist(mine, knee, ankle) - _RADIUS["l_shank"],
+            np.minimum(_seg_dist(mine, ankle, tip), _seg_dist(mine, ankle + heel, tip)) - _RADIUS["l_foot"],
+        ])
+        misfit = float(np.maximum(d.min(0), 0.0).sum())
+        if misfit < best_misfit:
+            bends = {"thigh": _pitch(a_thigh), "shank": _pitch(a_shin - a_thigh), "foot": _pitch(a_shin).T @ foot_R}
+            best, best_misfit = {"knee": knee, "ankle": ankle, "tip": tip, "heel": heel, "bends": bends}, misfit
+    return best
+
+
+def template_misfit(positions_m: np.ndarray, marker_segment: np.ndarray, kneel: bool = False) -> float:
     """How far [heights] the markers (M, 3) of an upright subject sit outside the capsules of the segments
     `marker_segment` gives them on `calibrate`'s template, mean over those seen: under 0.015 for a body
     lying still stood up head end first, two to four times that feet first (`calibrate_from_history`'s
     lying subjects, LYING_MAX_MISFIT)."""
-    _, _, _, _, cost = _template(positions_m, None, None, None)
+    cost = _template(positions_m, None, None, None, kneel)[4]
     ok = np.isfinite(positions_m[:, 0])
     return float(np.mean(np.maximum(cost[ok, marker_segment[ok]], 0.0)))
 
@@ -294,7 +395,7 @@ def template_misfit(positions_m: np.ndarray, marker_segment: np.ndarray) -> floa
 def calibrate(
     positions_m: np.ndarray, history_m: np.ndarray | None = None, distance_sd: np.ndarray | None = None,
     feet_of: np.ndarray | None = None, votes: list | None = None, mirror_of: np.ndarray | None = None,
-    given: np.ndarray | None = None,
+    given: np.ndarray | None = None, kneel: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Skeleton of an upright subject from one frame of its markers (M, 3; NaN = unseen, filled by caller).
     With `history_m` (F, M, 3) showing motion, markers whose nearest bones are close calls go to the
@@ -304,12 +405,14 @@ def calibrate(
     `votes`, the history's `heading_votes` if the caller has them. `mirror_of`, each marker's named twin
     (`mirror_index`): with a history, twins are then put on mirror segments (`_mirror_pairs`). `given`: the
     marker segments to take instead of this frame's own (`calibrate_from_history`'s medoid), twins still
-    mended; the frame gives the skeleton and the offsets.
+    mended; the frame gives the skeleton and the offsets. `kneel`: the subject kneels upright (`_template`).
 
     Returns (marker_segment (M,), marker_offsets_m (M, 3), joint_offsets_m (14, 3), t_world_root_m (3,),
-    R_parent_segment (14, 3, 3)) — the calibration pose is the model's zero pose.
+    R_parent_segment (14, 3, 3)) — the calibration pose is the model's zero pose, but for a kneeling
+    subject's legs: its zero pose stands straight, feet flat, and the calibration pose bends them as it
+    kneels (`_kneeling_leg`), so joint angles read alike for subjects calibrated standing and kneeling.
     """
-    bf, Q, J, tips, cost = _template(positions_m, history_m, feet_of, votes)
+    bf, Q, J, tips, cost, bends = _template(positions_m, history_m, feet_of, votes, kneel)
     h = bf.height_m
     # Markers out to the side above the knees are arm markers (T-pose or hanging arms alike): split them
     # between upper arm and forearm by how far along the arm they sit. The rest take the nearest bone.
@@ -321,7 +424,7 @@ def calibrate(
     for side, sgn in (("l", 1.0), ("r", -1.0)):
         sh, el, tip = J[f"{side}_upperarm"], J[f"{side}_forearm"], tips[f"{side}_forearm"]
         d_up, d_fore = _seg_dist(Q, sh, el), _seg_dist(Q, el, tip)
-        on_arm = np.isfinite(Q[:, 0]) & (Q[:, 2] > 0.3) & (
+        on_arm = np.isfinite(Q[:, 0]) & (Q[:, 2] > _arm_floor(kneel)) & (
             (sgn * Q[:, 1] > _SHOULDER_Y + 0.03) | ((sgn * Q[:, 1] > 0.09) & (np.minimum(d_up, d_fore) < reach))
         )
         marker_segment[on_arm] = np.where(d_up[on_arm] < d_fore[on_arm], S[f"{side}_upperarm"], S[f"{side}_forearm"])
@@ -329,7 +432,7 @@ def calibrate(
         # the pelvis's capsule yet nearest to it, go with the arm markers nearest them (cmu/85_12: a wrist
         # marker calibrated onto the pelvis was lost in the first occlusion after the seed, for good)
         arm_segs = [S[f"{side}_upperarm"], S[f"{side}_forearm"]]
-        beside = np.isfinite(Q[:, 0]) & (Q[:, 2] > 0.3) & (sgn * Q[:, 1] > 0.09) & ~np.isin(marker_segment, arm_segs)
+        beside = np.isfinite(Q[:, 0]) & (Q[:, 2] > _arm_floor(kneel)) & (sgn * Q[:, 1] > 0.09) & ~np.isin(marker_segment, arm_segs)
         for i in np.flatnonzero(beside):
             own = marker_segment[i]
             if cost[i, own] <= 0.0:
@@ -354,14 +457,22 @@ def calibrate(
         if mirror_of is not None:
             marker_segment = _mirror_pairs(_mirror_segments(marker_segment, mirror_of), sd, mirror_of, bone_cost)
     joints_world = np.stack([J[n] for n in SEGMENTS]) * h @ bf.R_world_body.T + bf.origin_m
+    R = np.tile(np.eye(3), (len(SEGMENTS), 1, 1))
+    R[0] = bf.R_world_body
+    for k, bend in bends.items():
+        R[k] = bend
+    R_world, _ = world_transforms(joints_world[0], R, np.zeros((len(SEGMENTS), 3)))
     joint_offsets = np.zeros((len(SEGMENTS), 3))
     for i, p in enumerate(PARENTS):
         if p >= 0:
-            joint_offsets[i] = bf.R_world_body.T @ (joints_world[i] - joints_world[p])
+            joint_offsets[i] = R_world[p].T @ (joints_world[i] - joints_world[p])
     marker_offsets = (positions_m - joints_world[marker_segment]) @ bf.R_world_body
-    R = np.tile(np.eye(3), (len(SEGMENTS), 1, 1))
-    R[0] = bf.R_world_body
+    for k in bends:
+        on = marker_segment == k
+        marker_offsets[on] = (positions_m[on] - joints_world[k]) @ R_world[k]
     return marker_segment, marker_offsets, joint_offsets, joints_world[0], R
+
+
 
 
 # `_by_rigidity`: a marker moves when another segment's markers keep their distances to it at least twice as
@@ -685,6 +796,12 @@ def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None =
     explains best (`template_misfit`, under LYING_MAX_MISFIT), laid back down. Pure, for the helper
     process."""
     upright = _calibrate_upright(history_m, mirror_of)
+    if kneels(history_m):
+        # a still seed scores any assignment alike; kneeling, it scored better kneeling than standing
+        # (KneeltoProne, L2, seeds 0-2: 6.9-8.3 mm against 9.6-20.6 mm)
+        kneeling = _calibrate_upright(history_m, mirror_of, kneel=True)
+        if kneeling is not None and (upright is None or kneeling[0] < upright[0]):
+            return kneeling[1]
     if upright is not None:
         return upright[1]
     # stood up each way, the template's assignment of one frame says which way is up (a subject lying
@@ -745,7 +862,38 @@ def lying_rotations(positions_m: np.ndarray) -> list[np.ndarray]:
     return turns
 
 
-def _calibrate_upright(history_m: np.ndarray, mirror_of: np.ndarray | None = None):
+#: (`kneels`) a frame shows a subject kneeling when the markers low on one side of it (under a seventh of its
+#: height: a shin and foot on the floor, or a foot) reach this share of its height apart: a shin lying flat
+#: with its foot (KneeltoProne: 0.38-0.41) rather than a foot (standing: 0.08-0.16 of a standing height)
+KNEEL_MIN_SPAN = 0.3
+
+
+def kneels(history_m: np.ndarray, n_frames: int = 9) -> bool:
+    """Whether labeled history (F, M, 3) shows a subject kneeling upright (KNEEL_MIN_SPAN) in most of up to
+    n_frames frames, evenly spread, and no taller than a kneeling person is (`_kneeling_frame`): then
+    `calibrate_from_history` calibrates it kneeling too, and keeps the better scoring calibration."""
+    votes = tried = 0
+    for f in np.linspace(0, len(history_m) - 1, min(n_frames, len(history_m))).astype(int):
+        P = history_m[f][np.isfinite(history_m[f, :, 0])]
+        if len(P) < 8:
+            continue
+        tried += 1
+        floor, hk = P[:, 2].min(), np.ptp(P[:, 2])
+        if not 1.0 < hk / _KNEEL_TOP < 2.4:
+            continue
+        z = (P[:, 2] - floor) / hk
+        band = P[(z > 0.62) & (z < 0.87), :2]
+        low = P[z < 0.15, :2]
+        if len(band) < 3 or len(low) < 3:
+            continue
+        _, V = np.linalg.eigh(np.cov((band - band.mean(0)).T))
+        side = (low - low.mean(0)) @ V[:, 1]
+        span = max((cdist(low[m], low[m]).max() for m in (side > 0, side <= 0) if m.sum() >= 2), default=0.0)
+        votes += span > KNEEL_MIN_SPAN * hk
+    return 2 * votes > tried > 0
+
+
+def _calibrate_upright(history_m: np.ndarray, mirror_of: np.ndarray | None = None, kneel: bool = False):
     """(score, calibration) of the calibration that best explains labeled history (F, M, 3) of an upright
     subject, or None if no frame of it calibrates; the score, lower the better, is `layout_residuals`'
     median plus `articulation_error` [m].
@@ -778,7 +926,7 @@ def _calibrate_upright(history_m: np.ndarray, mirror_of: np.ndarray | None = Non
                 given: np.ndarray | None = None):  # (score, result)
         ok = np.isfinite(ref[:, 0])
         seg, off, joints, t_root, R = calibrate(np.where(ok[:, None], ref, np.nan), history_m, sd, feet_of, votes,
-                                                mirror, given)
+                                                mirror, given, kneel)
         off = np.where(ok[:, None], off, 0.0)  # never seen: at the segment's origin (see above)
         layout = layout_residuals(history_m, seg, off)
         with warnings.catch_warnings():

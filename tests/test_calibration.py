@@ -731,3 +731,80 @@ def test_a_seed_lying_prone_on_the_floor_is_calibrated_head_up(level, seed):
     head = np.nanmean(history[:, [names.index(f"subject:L{s}FHD") for s in "LR"]], axis=(0, 1))
     assert up @ (head - t_root) / np.linalg.norm(head - t_root) > 0.9 and abs(up[2]) < 0.3
     assert forward[2] < -0.8
+
+
+def _kneeling(perf, knee_up: str = ""):
+    """The performer's first frame posed kneeling upright, still for 0.5 s (1 mm of noise): both knees on
+    the floor, shins flat behind, insteps down; the side in `knee_up` ("l" or "r") kneels on its other knee,
+    this foot planted ahead. Returns the history (F, M, 3)."""
+    from recordings.synthetic import forward_kinematics, marker_positions
+
+    quats = perf.rotations_xyzw[:1].copy()
+    R = Rotation.from_quat(quats[0]).as_matrix()
+    pitch = lambda deg: Rotation.from_rotvec([0.0, np.radians(deg), 0.0]).as_matrix()  # + swings a leg back
+    for side in "lr":
+        thigh, shank, foot = (S[f"{side}_{k}"] for k in ("thigh", "shank", "foot"))
+        if side == knee_up:
+            R[thigh], R[shank], R[foot] = pitch(-90.0), pitch(90.0), np.eye(3)
+        else:
+            R[thigh], R[shank], R[foot] = np.eye(3), pitch(90.0), pitch(90.0)
+    Rw, pw = forward_kinematics(np.zeros((1, 3)), Rotation.from_matrix(R).as_quat()[None], perf.joint_offsets_m)
+    P = marker_positions(Rw, pw, perf.marker_segment, perf.marker_offsets_m)[0]
+    P[:, 2] -= P[:, 2].min() - 0.01
+    noise = np.random.default_rng(0).normal(0.0, 0.001, (60, *P.shape))
+    return P[None] + noise
+
+
+@pytest.mark.parametrize("marker_set, seed, knee_up", [("cmu41", 12, ""), ("cmu41", 13, "l"), ("gt53", 12, "r")])
+def test_a_subject_kneeling_through_its_seed_is_calibrated_kneeling(marker_set, seed, knee_up):
+    """A seed kneeling upright, on both knees or on one with the other foot planted (clouthier's
+    KneeltoProne kneels on one): standing, the template put shin markers on the feet and thigh markers on
+    the arms. Kneeling (`kneels`, `_kneeling_leg`), the thigh, shin and foot markers go to their own
+    segments, the calibration reproduces the markers, and its zero pose stands straight: the knees bend
+    from it by a quarter turn as the performer's do (a knee up, to the nearest of `KNEELING_LEGS`' shins),
+    and the hip of a knee up by a quarter turn too."""
+    from service.calibration import kneels
+    from service.solver import PoseSolver
+
+    perf = perform(seed, marker_set=marker_set, duration_s=0.1)
+    history = _kneeling(perf, knee_up)
+    assert kneels(history) and not kneels(perf.recording.points_m)
+    seg, off, joints, t_root, R, _ = calibrate_from_history(history, mirror_index(perf.marker_names))
+    got = [SEGMENTS[k] for k in seg]
+    truth = [SEGMENTS[k] for k in perf.marker_segment]
+    legs = [(n, g, t) for n, g, t in zip(perf.marker_names, got, truth) if n[1:] in ("THI", "SHN", "TIB", "HEE", "TOE", "MT5")]
+    assert legs and all(g == t for _, g, t in legs), legs
+    assert np.mean([g == t for g, t in zip(got, truth)]) >= 0.85
+    pred = PoseSolver(96).predict(t_root, R, joints, seg, off)
+    assert np.median(np.linalg.norm(pred - history.mean(0), axis=1)) < 0.005
+    turn = lambda R: np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
+    for side in "lr":
+        knee, hip = turn(R[S[f"{side}_shank"]]), turn(R[S[f"{side}_thigh"]])
+        assert (abs(knee - 90.0) <= 20.5 and abs(hip - 90.0) < 1.0) if side == knee_up else (abs(knee - 90.0) < 1.0 and hip < 1.0), (side, knee, hip)
+        assert joints[S[f"{side}_foot"]][2] < -0.3 and abs(joints[S[f"{side}_foot"]][0]) < 0.05  # shin straight down
+
+
+@pytest.mark.parametrize("level, seed", [("L2", 1), ("L3", 4)])
+def test_a_real_seed_kneeling_on_one_knee_puts_its_clusters_on_their_segments(level, seed):
+    """Real data: clouthier/KneeltoProne01 kneels on its right knee through its 2 s seed, the left foot
+    planted (its cloud 1.2 m tall). Calibrated standing, its shin clusters went to the feet and its thigh
+    clusters to the shanks, the pelvis and an upper arm, and the fit missed the markers by 0.4-0.7 m once it
+    lay down. Kneeling, every cluster of the limbs (thigh TH, shank SH, upper arm UA, forearm FA, four markers
+    each) and the feet's FT markers go to their own side's segments."""
+    from benchmarks.skeleton import seed_history
+    from recordings.c3d import read_c3d
+    from recordings.corruption import corrupt
+    from service.calibration import kneels
+    from tests.conftest import data_path
+
+    seq = corrupt(read_c3d(data_path("clouthier/KneeltoProne01.c3d")), level, seed)
+    names, history = seed_history(seq, "subject")
+    seen = np.isfinite(history[..., 0]).any(0)
+    names, history = [n.partition(":")[2] for n, ok in zip(names, seen) if ok], history[:, seen]
+    assert kneels(history)
+    seg = calibrate_from_history(history, mirror_index(names))[0]
+    stems = {"TH": "thigh", "SH": "shank", "UA": "upperarm", "FA": "forearm", "FT": "foot"}
+    judged = [(n, SEGMENTS[k]) for n, k in zip(names, seg) if n[1:3] in stems]
+    assert len(judged) > 30
+    wrong = [(n, g) for n, g in judged if g != f"{n[0].lower()}_{stems[n[1:3]]}"]
+    assert wrong == []
