@@ -1222,6 +1222,80 @@ def _turn_rms(Ra: np.ndarray, Rb: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.arccos(np.clip(cos, -1.0, 1.0)) ** 2)))
 
 
+#: (`functional_joints`) a joint is measured when its two segments turned by at least this much [degrees]
+#: about it over the history, and the centre found keeps them together within FUNCTIONAL_MAX_RMS_M RMS, under
+#: FUNCTIONAL_GAIN of what the current joint does; FUNCTIONAL_PRIOR is the weight per frame that holds the
+#: centre along what the motion does not reveal (a hinge's axis) at the current joint: a shift of 10 cm
+#: costs what 1 cm of misfit on every frame does.
+FUNCTIONAL_MIN_TURN_DEG = 30.0
+FUNCTIONAL_MAX_RMS_M = 0.02
+FUNCTIONAL_GAIN = 0.5
+FUNCTIONAL_PRIOR = 0.1
+
+
+def _segment_motions(positions_m: np.ndarray, marker_segment: np.ndarray, marker_offsets_m: np.ndarray):
+    """{segment: (R (F, 3, 3), t (F, 3))}, each segment's rigid motion in every frame of labeled history
+    (F, M, 3) from its own markers (Kabsch of their offsets onto them; NaN in frames showing fewer than 3),
+    for the segments whose markers do not lie in a line."""
+    F = len(positions_m)
+    motions = {}
+    for k in np.unique(marker_segment[marker_segment >= 0]):
+        idx = np.flatnonzero(marker_segment == k)
+        if len(idx) < 3 or np.linalg.svd(marker_offsets_m[idx] - marker_offsets_m[idx].mean(0), compute_uv=False)[1] < 0.01:
+            continue
+        w = np.isfinite(positions_m[:, idx, 0]).astype(float)
+        rows = np.flatnonzero(w.sum(1) >= 3)
+        R, t = np.full((F, 3, 3), np.nan), np.full((F, 3), np.nan)
+        if len(rows):
+            R[rows], t[rows] = _rigid_motions(marker_offsets_m[idx], np.where(w[rows, :, None] > 0, positions_m[rows][:, idx], 0.0), w[rows])
+        motions[int(k)] = (R, t)
+    return motions
+
+
+def functional_joints(positions_m: np.ndarray, marker_segment: np.ndarray, marker_offsets_m: np.ndarray,
+                      joint_offsets_m: np.ndarray, rigid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The joints that labeled history (F, M, 3) shows, measured where they are: the point fixed in both
+    segments' frames as they turn about it (the symmetrical centre of rotation estimation, SCoRE: Ehrig et
+    al., J Biomech 2006), one linear least-squares problem per joint on the segments' own rigid motions, so
+    no pose solve can mislead it. A template's joints are guesses where the calibration pose bent nothing
+    (a seed kneeling still put the knees 10-20 cm off: the fit missed the markers by 10 cm once the subject
+    lay down). Returns (marker_offsets_m, joint_offsets_m, measured (14,) bool): each measured joint's
+    segment has its origin moved there (its markers' offsets and its children's joints follow). `rigid`
+    (M,) bool: the markers whose segments' motions may be read from (those that kept their offsets in
+    their segments: a T-pose's straight arm gave the upper arm the elbow's and a wrist's markers)."""
+    motions = _segment_motions(positions_m, np.where(rigid, marker_segment, -1) if rigid is not None else marker_segment,
+                               marker_offsets_m)
+    in_parent = joint_offsets_m.copy()  # joint k in its parent's frame, about the parent's current origin
+    in_own = np.zeros((N_SEGMENTS, 3))  # joint k in its own frame, about its current origin
+    measured = np.zeros(N_SEGMENTS, bool)
+    for k in range(1, N_SEGMENTS):
+        p = PARENTS[k]
+        if k not in motions or p not in motions or not SEGMENTS[k].startswith(("l_", "r_")):
+            continue  # (the spine's joints join segments that bend within: a chest's C7 and T10 are no rigid body)
+        (Rp, tp), (Rk, tk) = motions[p], motions[k]
+        both = np.flatnonzero(np.isfinite(Rp[:, 0, 0]) & np.isfinite(Rk[:, 0, 0]))
+        if len(both) < 10:
+            continue
+        rel = np.swapaxes(Rp[both], 1, 2) @ Rk[both]  # the joint's rotation in each frame
+        turn = np.degrees(np.arccos(np.clip((np.trace(rel[0].T @ rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+        if turn.max() < FUNCTIONAL_MIN_TURN_DEG:
+            continue
+        A = np.concatenate([Rp[both], -Rk[both]], axis=2).reshape(-1, 6)
+        b = (tk[both] - tp[both]).reshape(-1)
+        c0 = np.concatenate([joint_offsets_m[k], np.zeros(3)])
+        w = FUNCTIONAL_PRIOR * np.sqrt(len(both))
+        c = np.linalg.solve(A.T @ A + w**2 * np.eye(6), A.T @ b + w**2 * c0)
+        rms = np.sqrt(np.mean(np.sum((A @ c - b).reshape(-1, 3) ** 2, axis=1)))
+        rms0 = np.sqrt(np.mean(np.sum((A @ c0 - b).reshape(-1, 3) ** 2, axis=1)))
+        if rms < FUNCTIONAL_MAX_RMS_M and rms < FUNCTIONAL_GAIN * rms0:
+            in_parent[k], in_own[k], measured[k] = c[:3], c[3:], True
+    offsets = marker_offsets_m - in_own[np.maximum(marker_segment, 0)] * (marker_segment >= 0)[:, None]
+    joints = np.zeros_like(joint_offsets_m)
+    for k in range(1, N_SEGMENTS):
+        joints[k] = in_parent[k] - in_own[PARENTS[k]]  # (the root's origin stays: in_own[0] is zero)
+    return offsets, joints, measured
+
+
 def refine(
     positions_m: np.ndarray,
     R_parent_segment: np.ndarray,

@@ -995,6 +995,43 @@ def test_a_marker_the_seed_never_showed_is_named_after_its_mirror_image():
     assert run(hidden, Engine(EngineConfig(tpose_auto=False)), as_daemon=True) == given
 
 
+def test_a_mirror_image_follows_a_refinement_that_moves_its_segments_origin():
+    """RBHD hidden through the seed, as above; once its image is placed, the head's origin moves 6 cm (a
+    refinement measured the neck elsewhere: `calibration.functional_joints`; the markers' offsets move with
+    it, the body is the same). The image is placed anew from the new offsets and RBHD is still named: placed
+    once, it sat where the old origin put it, and RBHD went unlabeled for 755 frames in view (tennis serve,
+    L2, seed 13)."""
+    from protocol.skeleton import SEGMENTS
+
+    seq = corrupt(perform(5, duration_s=5.0).recording, "L2", 5)
+    rbhd = next(i for i, n in enumerate(seq.marker_names) if n.endswith(":RBHD"))
+    pts, tru = list(seq.points_m), list(seq.truth)
+    for f in range(seq.seed_frames):
+        if pts[f] is not None:
+            keep = tru[f] != rbhd
+            pts[f], tru[f] = pts[f][keep], tru[f][keep]
+    hidden = dataclasses.replace(seq, points_m=pts, truth=tru)
+    engine = Engine(EngineConfig(tpose_auto=False))
+    head = SEGMENTS.index("head")
+    moved, named = False, []
+    for f, points in enumerate(hidden.points_m):
+        if points is None:
+            continue
+        labels = hidden.true_labels(f) if f < hidden.seed_frames else None
+        outputs, _ = engine.step(FrameInput("default", f, t_ns(f, hidden.rate_hz), points, labels))
+        s = engine._subjects["Performer"]
+        if not moved and s.mirrors:
+            shift = np.array([0.0, 0.06, -0.03])  # the origin 6 cm to the left, 3 cm down
+            on = s.model.marker_segment == head
+            s.model = dataclasses.replace(s.model, marker_offsets_m=np.where(on[:, None], s.model.marker_offsets_m - shift,
+                                                                             s.model.marker_offsets_m),
+                                          joint_offsets_m=s.model.joint_offsets_m + shift * (np.arange(14) == head)[:, None])
+            moved = f
+        named += [f for o in outputs if "RBHD" in o.markers and o.point_index[o.markers.index("RBHD")] >= 0]
+    assert moved and named and named[0] > moved
+    assert len(named) > 0.5 * sum(rbhd in hidden.truth[f] for f in range(moved, hidden.n_frames) if hidden.truth[f] is not None)
+
+
 def test_a_calibration_that_exchanged_two_segments_markers_is_redone_from_the_history_and_a_good_one_kept():
     """`recalibrated_model` (run in the helper process when a seeded subject's solves miss by decimetres):
     a calibration that put the pelvis's markers on the right forearm and the forearm's on the pelvis (a hand
