@@ -358,9 +358,8 @@ def _kneeling_leg(Q: np.ndarray, s: float) -> dict:
     straight with the foot flat}}."""
     hip = np.array([0.0, s * _HIP_Y, _HIP_Z])
     thigh, shin = _HIP_Z - _KNEE_Z, _KNEE_Z - _ANKLE_Z
-    near = np.isfinite(Q[:, 0]) & (s * Q[:, 1] > 0.0) & (Q[:, 2] < _HIP_Z + 2 * _PELVIS_RISE)
-    mine = Q[near]
-    pelvis = _seg_dist(mine, hip * [1, 1, 1] + [0, 0, _PELVIS_RISE], hip * [1, -1, 1] + [0, 0, _PELVIS_RISE]) - _RADIUS["pelvis"]
+    mine = Q[np.isfinite(Q[:, 0]) & (s * Q[:, 1] > 0.0) & (Q[:, 2] < _HIP_Z + 2 * _PELVIS_RISE)]
+    pelvis = _seg_dist(mine, hip + [0, 0, _PELVIS_RISE], hip * [1, -1, 1] + [0, 0, _PELVIS_RISE]) - _RADIUS["pelvis"]
     best, best_misfit = None, np.inf
     for a_thigh, a_shin, a_foot in KNEELING_LEGS:
         down = np.array([0.0, 0.0, -1.0])
@@ -471,8 +470,6 @@ def calibrate(
         on = marker_segment == k
         marker_offsets[on] = (positions_m[on] - joints_world[k]) @ R_world[k]
     return marker_segment, marker_offsets, joint_offsets, joints_world[0], R
-
-
 
 
 # `_by_rigidity`: a marker moves when another segment's markers keep their distances to it at least twice as

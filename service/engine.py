@@ -1003,8 +1003,8 @@ def refined_model(solver_spec: tuple, model, hist, t0, R0, n_frames: int = 40, r
     """A better skeleton for `model` from labeled history (F, M, 3): the limb joints the history turned are
     measured from their segments' own motions (`calibration.functional_joints`); then poses of up to
     n_frames frames are solved with the model, markers move to the segment that carries them best, and the
-    least-squares alignment gives new offsets; twice. (Squat, seeds 0-5: L3 98.38 -> 99.77 %, its solves'
-    residual p90 87 -> 25 mm; a 41-marker set's limb segments seldom show 3 markers, and the dev suite
+    least-squares alignment gives new offsets; twice. (Squat, seeds 0-5: L3 99.39 -> 99.74 %, its solves'
+    residual p90 60 -> 26 mm; a 41-marker set's limb segments seldom show 3 markers, and the dev suite
     hardly moved.) Not with `measure_joints` False (the engine's T-pose subjects: their segments were given
     their markers on a pose that bent no joint, and a marker across a joint from its bone blends two bones'
     motions into its segment's; squat in tpose mode, L2, seed 1: a wrist pair then swapped for 604 frames,

@@ -964,6 +964,18 @@ def test_refinement_corrects_a_skeleton_and_refuses_to_stretch_its_bones():
     assert refine(taller, refined) is None
 
 
+def _rbhd_hidden_through_the_seed():
+    """(the corrupted sequence, the same with RBHD taken out of its seed frames, RBHD's index)"""
+    seq = corrupt(perform(5, duration_s=5.0).recording, "L2", 5)
+    rbhd = next(i for i, n in enumerate(seq.marker_names) if n.endswith(":RBHD"))
+    pts, tru = list(seq.points_m), list(seq.truth)
+    for f in range(seq.seed_frames):
+        if pts[f] is not None:
+            keep = tru[f] != rbhd
+            pts[f], tru[f] = pts[f][keep], tru[f][keep]
+    return seq, dataclasses.replace(seq, points_m=pts, truth=tru), rbhd
+
+
 def test_a_marker_the_seed_never_showed_is_named_after_its_mirror_image():
     """RBHD hidden through the whole seed: no label names it, but LBHD's image across the sagittal plane
     does. Once its point has ridden on the head there for MIRROR_FRAMES looks it is RBHD, and the rest keep
@@ -972,14 +984,7 @@ def test_a_marker_the_seed_never_showed_is_named_after_its_mirror_image():
     the look runs between frames, on the state the frame left, either way."""
     from service.engine import MIRROR_EVERY_FRAMES, MIRROR_FRAMES
 
-    seq = corrupt(perform(5, duration_s=5.0).recording, "L2", 5)
-    rbhd = next(i for i, n in enumerate(seq.marker_names) if n.endswith(":RBHD"))
-    pts, tru = list(seq.points_m), list(seq.truth)
-    for f in range(seq.seed_frames):
-        if pts[f] is not None:
-            keep = tru[f] != rbhd
-            pts[f], tru[f] = pts[f][keep], tru[f][keep]
-    hidden = dataclasses.replace(seq, points_m=pts, truth=tru)
+    seq, hidden, rbhd = _rbhd_hidden_through_the_seed()
     engine = Engine(EngineConfig(tpose_auto=False))
     given = run(hidden, engine)
     named = [f for f in range(hidden.seed_frames, hidden.n_frames) if given[f] is not None and "Performer:RBHD" in given[f]]
@@ -1003,14 +1008,7 @@ def test_a_mirror_image_follows_a_refinement_that_moves_its_segments_origin():
     L2, seed 13)."""
     from protocol.skeleton import SEGMENTS
 
-    seq = corrupt(perform(5, duration_s=5.0).recording, "L2", 5)
-    rbhd = next(i for i, n in enumerate(seq.marker_names) if n.endswith(":RBHD"))
-    pts, tru = list(seq.points_m), list(seq.truth)
-    for f in range(seq.seed_frames):
-        if pts[f] is not None:
-            keep = tru[f] != rbhd
-            pts[f], tru[f] = pts[f][keep], tru[f][keep]
-    hidden = dataclasses.replace(seq, points_m=pts, truth=tru)
+    _, hidden, rbhd = _rbhd_hidden_through_the_seed()
     engine = Engine(EngineConfig(tpose_auto=False))
     head = SEGMENTS.index("head")
     moved, named = False, []
