@@ -795,9 +795,11 @@ def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None =
     upright = _calibrate_upright(history_m, mirror_of)
     if kneels(history_m):
         # a still seed scores any assignment alike; kneeling, it scored better kneeling than standing
-        # (KneeltoProne, L2, seeds 0-2: 6.9-8.3 mm against 9.6-20.6 mm)
+        # (KneeltoProne, L2, seeds 0-2: 6.9-8.3 mm against 9.6-20.6 mm), or nearly as well (a recalibration
+        # at L3, seed 1: 9.5 against 9.3 mm, and the standing one's spine ran off 170 degrees); a standing
+        # subject the low markers took for kneeling scored 18-180 % worse kneeling (basketball, 3 seeds of 48)
         kneeling = _calibrate_upright(history_m, mirror_of, kneel=True)
-        if kneeling is not None and (upright is None or kneeling[0] < upright[0]):
+        if kneeling is not None and (upright is None or kneeling[0] < KNEEL_SCORE_SLACK * upright[0]):
             return kneeling[1]
     if upright is not None:
         return upright[1]
@@ -863,6 +865,8 @@ def lying_rotations(positions_m: np.ndarray) -> list[np.ndarray]:
 #: height: a shin and foot on the floor, or a foot) reach this share of its height apart: a shin lying flat
 #: with its foot (KneeltoProne: 0.38-0.41) rather than a foot (standing: 0.08-0.16 of a standing height)
 KNEEL_MIN_SPAN = 0.3
+#: ... and its kneeling calibration is taken if it scores under this times the standing one's
+KNEEL_SCORE_SLACK = 1.1
 
 
 def kneels(history_m: np.ndarray, n_frames: int = 9) -> bool:

@@ -848,3 +848,21 @@ def test_functional_joints_find_the_joints_a_moving_history_turns_about():
     moved = np.linalg.norm(rest - perf.recording.points_m[0], axis=1)
     limb = np.array([SEGMENTS[k].startswith(("l_", "r_")) for k in seg])
     assert moved[~limb].max() < 1e-9 and moved[limb].max() < 0.02
+
+
+def test_a_kneeling_history_takes_the_kneeling_calibration_unless_it_scores_far_worse(monkeypatch):
+    """`calibrate_from_history` on a history `kneels` accepts: the kneeling calibration wins a near tie
+    (KneeltoProne's recalibration at L3, seed 1: 9.5 against 9.3 mm, and the standing one's spine ran off
+    170 degrees), and loses to a standing one that scores beyond KNEEL_SCORE_SLACK of it (a basketball
+    player the low markers took for kneeling: 17.3 against 14.6 mm, and 20-31 against 11 mm)."""
+    from service import calibration
+
+    perf = perform(12, marker_set="cmu41", duration_s=0.1)
+    history = _kneeling(perf, "l")
+    scores = {}
+    monkeypatch.setattr(calibration, "_calibrate_upright",
+                        lambda h, m=None, kneel=False: (scores[kneel], "kneeling" if kneel else "standing"))
+    scores.update({False: 0.0093, True: 0.0095})
+    assert calibration.calibrate_from_history(history) == "kneeling"
+    scores.update({False: 0.0146, True: 0.0173})
+    assert calibration.calibrate_from_history(history) == "standing"
