@@ -777,6 +777,52 @@ MEDOID_MIN_FRAMES = 3
 MEDOID_SCORE_SLACK = 2.0
 
 
+#: With a pose solver (the engine passes its own), the candidates are also judged by what the tracker will
+#: do with them: their skeletons posed on SOLVE_FRAMES frames of the history (`solve_misfit`). The static
+#: score reads rigid clusters and joints, not whether the bones can reach the markers: a dribbling player's
+#: fullest frame scored 14.7 mm and its skeleton posed the history to 28 mm, another frame's to 10 mm; its
+#: heels then went to the shanks by the frames' vote (`_medoid`, scored 11.3 mm), and the skeleton posed it
+#: to 69 mm; the engine's solves missed by 90-110 mm for 1.6 s, the left foot 0.3 m off (basketball at L2,
+#: seed 1). So when the chosen calibration misfits by more than SOLVE_FLOOR_M (skin moves markers by ~1 cm:
+#: under it, every candidate fits and the static score chose), another frame's is taken if it misfits
+#: under SOLVE_GAIN times as much; the medoid's segments and the mended twins are kept only if theirs
+#: misfits within SOLVE_SLACK of it (or the floor). (Dev suite, 18 realizations: the solves' residual p90,
+#: mean over runs, 23.5 -> 20.9 mm at L2 and 24.5 -> 22.1 at L3, the worst run 107 -> 74 and 83 -> 60 mm;
+#: labels L2 99.324 -> 99.317 %, L3 98.561 -> 98.562 %, 11 runs up, 12 down. Without the floor a lying
+#: seed's 7 mm gave way to 2.4, and 03_rolling lost 8 points on that run.)
+SOLVE_FRAMES = 12
+SOLVE_GAIN = 0.5
+SOLVE_SLACK = 1.25
+SOLVE_FLOOR_M = 0.015
+
+
+def solve_misfit(solver, history_m: np.ndarray, frame: int, result: tuple, n_frames: int = SOLVE_FRAMES) -> float:
+    """Median RMS [m] of calibration `result` (as `calibrate_from_history` returns it), made from history
+    frame `frame`, posed by `solver` (a `PoseSolver`) on n_frames frames spread over history_m (F, M, 3):
+    tracked from `frame` forwards and backwards, each frame solved (up to twice, as the engine's catch-up)
+    from the pose of the frame before it. A failed solve counts as 1 m. The median: tracked across ~0.1 s
+    gaps, a fast limb can lose its pose on a few frames whatever the skeleton (a serving player's, 0.8 m
+    off on the last three of twelve, and 5-24 mm on the rest)."""
+    seg, off, joints, t_root, R, _ = result
+    picks = np.unique(np.linspace(0, len(history_m) - 1, n_frames).astype(int))
+    misfits = []
+    for chain in (picks[picks >= frame], picks[picks < frame][::-1]):
+        t, Rp = t_root, R
+        for k in chain:
+            seen = np.isfinite(history_m[k, :, 0])
+            if seen.sum() < 4:
+                continue
+            for _ in range(2):  # (the second only if the first left the markers SOLVE_FLOOR_M off)
+                fit = solver.fit(t, Rp, joints, seg, off, history_m[k], seen)
+                if not fit.ok:
+                    break
+                t, Rp = fit.t_world_root_m, fit.R_parent_segment
+                if fit.residual_rms_m <= SOLVE_FLOOR_M:
+                    break
+            misfits.append(fit.residual_rms_m if fit.ok else 1.0)
+    return float(np.median(misfits)) if misfits else np.inf
+
+
 def lopsided(marker_segment: np.ndarray) -> bool:
     """True if a limb segment carries no marker while its twin on the other side carries two or more: a
     calibration that put a whole forearm's markers on the upper arm, or a hand hanging by the hip on the
@@ -785,20 +831,20 @@ def lopsided(marker_segment: np.ndarray) -> bool:
     return bool(np.any((count == 0) & (count[MIRROR_SEGMENT] >= 2)))  # (a trunk segment is its own mirror)
 
 
-def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None = None):
+def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None = None, solver=None):
     """(marker_segment, marker_offsets_m, joint_offsets_m, t_world_root_m, R_parent_segment, layout_rms_m)
     of the calibration that best explains labeled history (F, M, 3), or None if no frame of it calibrates:
     that of an upright subject (`_calibrate_upright`), or, for a subject lying down (`lying_rotations`), its
     calibration stood up the way (head end first, feet first, or along the arms) whose frame the template
-    explains best (`template_misfit`, under LYING_MAX_MISFIT), laid back down. Pure, for the helper
-    process."""
-    upright = _calibrate_upright(history_m, mirror_of)
+    explains best (`template_misfit`, under LYING_MAX_MISFIT), laid back down. With `solver` (a
+    `PoseSolver`), candidates are judged by their solves too (SOLVE_GAIN). Pure, for the helper process."""
+    upright = _calibrate_upright(history_m, mirror_of, solver=solver)
     if kneels(history_m):
         # a still seed scores any assignment alike; kneeling, it scored better kneeling than standing
         # (KneeltoProne, L2, seeds 0-2: 6.9-8.3 mm against 9.6-20.6 mm), or nearly as well (a recalibration
         # at L3, seed 1: 9.5 against 9.3 mm, and the standing one's spine ran off 170 degrees); a standing
         # subject the low markers took for kneeling scored 18-180 % worse kneeling (basketball, 3 seeds of 48)
-        kneeling = _calibrate_upright(history_m, mirror_of, kneel=True)
+        kneeling = _calibrate_upright(history_m, mirror_of, kneel=True, solver=solver)
         if kneeling is not None and (upright is None or kneeling[0] < KNEEL_SCORE_SLACK * upright[0]):
             return kneeling[1]
     if upright is not None:
@@ -819,7 +865,7 @@ def calibrate_from_history(history_m: np.ndarray, mirror_of: np.ndarray | None =
             best, best_misfit = R_up, misfit
     if best is None:
         return None
-    stood = _calibrate_upright(history_m @ best.T, mirror_of)
+    stood = _calibrate_upright(history_m @ best.T, mirror_of, solver=solver)
     if stood is None:
         return None
     seg, off, joints, t_root, R, layout = stood[1]
@@ -894,7 +940,8 @@ def kneels(history_m: np.ndarray, n_frames: int = 9) -> bool:
     return 2 * votes > tried > 0
 
 
-def _calibrate_upright(history_m: np.ndarray, mirror_of: np.ndarray | None = None, kneel: bool = False):
+def _calibrate_upright(history_m: np.ndarray, mirror_of: np.ndarray | None = None, kneel: bool = False,
+                       solver=None):
     """(score, calibration) of the calibration that best explains labeled history (F, M, 3) of an upright
     subject, or None if no frame of it calibrates; the score, lower the better, is `layout_residuals`'
     median plus `articulation_error` [m].
@@ -915,7 +962,8 @@ def _calibrate_upright(history_m: np.ndarray, mirror_of: np.ndarray | None = Non
     seen keep offset zero on whatever segment the calibration left them (nothing is known of them: a
     refinement, `engine.refined_model`, moves them once they are seen and the fit suffers). With `mirror_of` (each
     marker's named twin, `mirror_index`), the chosen calibration is made again with its twins mended
-    (`calibrate`'s mirror_of), and kept if it scores within MIRROR_SCORE_SLACK of it."""
+    (`calibrate`'s mirror_of), and kept if it scores within MIRROR_SCORE_SLACK of it. With `solver`, the
+    skeletons' solves of the history judge too (`solve_misfit`, SOLVE_GAIN, SOLVE_SLACK)."""
     seen = np.isfinite(history_m[..., 0]).sum(1)
     first = int(np.argmax(seen))
     full = np.flatnonzero(seen >= seen[first] - 2)
@@ -946,32 +994,52 @@ def _calibrate_upright(history_m: np.ndarray, mirror_of: np.ndarray | None = Non
             except CalibrationError:
                 break
             if result is None or s_ < score:
-                score, result, args = s_, r_, (ref, feet_of)
+                score, result, args = s_, r_, (ref, feet_of, i)
             feet_of = r_[0]
         if result is None:
             continue
         if best is None:
             first_score = score
         lop = lopsided(result[0])
-        tried.append((score, result, args, lop))
+        tried.append((score, result, args, lop))  # (args: ref, feet_of, frame)
         better = score < best_score and score < CANDIDATE_GAIN * first_score
         if best is None or (best_lop and not lop) or (lop == best_lop and better):
             best, best_score, best_args, best_lop = result, score, args, lop
+    if best is None:
+        return None
+    best_fit = np.inf  # the chosen calibration's `solve_misfit` (with a solver)
+    if solver is not None:
+        best_fit = solve_misfit(solver, history_m, best_args[2], best)
+        fits = [np.inf if result is best or (lop and not best_lop) or best_fit <= SOLVE_FLOOR_M
+                else solve_misfit(solver, history_m, args[2], result) for _, result, args, lop in tried]
+        k = int(np.argmin(fits))
+        if best_fit > SOLVE_FLOOR_M and fits[k] < SOLVE_GAIN * best_fit:
+            best_score, best, best_args, best_lop = tried[k]
+            best_fit = fits[k]
+
+    def fits_as_well(result: tuple) -> bool:  # (without a solver, always)
+        if solver is None:
+            return True
+        fit = solve_misfit(solver, history_m, best_args[2], result)
+        return fit <= max(SOLVE_SLACK * best_fit, SOLVE_FLOOR_M)
+
     medoid, given = _medoid(tried, best_lop), None
     if (medoid is not None and (medoid[1][0] != best[0]).any()
             and _twins_apart(medoid[1][0], mirror_of) <= _twins_apart(best[0], mirror_of)):
         # the medoid's segments on the chosen frame's skeleton and offsets (the fullest frame's: a frame with
         # a marker hidden leaves its offset unknown)
-        score, result = attempt(*best_args, None, medoid[1][0])
-        if score <= MEDOID_SCORE_SLACK * best_score and (best_lop or not lopsided(result[0])):
+        score, result = attempt(*best_args[:2], None, medoid[1][0])
+        if (score <= MEDOID_SCORE_SLACK * best_score and (best_lop or not lopsided(result[0]))
+                and fits_as_well(result)):
             best, best_score, given = result, score, medoid[1][0]
-    if best is not None and mirror_of is not None and (mirror_of >= 0).any():
+    if mirror_of is not None and (mirror_of >= 0).any():
         # named twins mended on the chosen calibration only (mended, a poor frame's calibration scored
         # close enough to a good one's to keep it: the tennis player's wrists stayed on the thighs)
-        score, result = attempt(*best_args, mirror_of, given)
-        if score <= MIRROR_SCORE_SLACK * best_score and (best_lop or not lopsided(result[0])):
+        score, result = attempt(*best_args[:2], mirror_of, given)
+        if (score <= MIRROR_SCORE_SLACK * best_score and (best_lop or not lopsided(result[0]))
+                and fits_as_well(result)):
             best, best_score = result, score
-    return None if best is None else (best_score, best)
+    return best_score, best
 
 
 def _twins_apart(marker_segment: np.ndarray, mirror_of: np.ndarray | None) -> int:

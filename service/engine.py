@@ -474,7 +474,7 @@ class Engine:
             return
         s.next_calibration_frame = s.state.frames + 120
         delay = max(self._frames(s, CALIBRATE_APPLY_S), self._queue_frames(s))
-        job = self._worker().submit(calibration.calibrate_from_history, np.stack(s.history),
+        job = self._worker().submit(history_calibration, self._solver_spec, np.stack(s.history),
                                     calibration.mirror_index(s.model.markers))
         s.calibration_job = (job, s.state.frames + delay)
 
@@ -999,6 +999,12 @@ def _warm_solver(spec: tuple) -> None:
     _solver(spec).warm_up()
 
 
+def history_calibration(solver_spec: tuple, hist: np.ndarray, mirror_of: np.ndarray):
+    """`calibration.calibrate_from_history` of a subject's labeled history (F, M, 3), its candidates judged
+    by this solver's solves too (`calibration.SOLVE_GAIN`). Pure, for the helper process."""
+    return calibration.calibrate_from_history(hist, mirror_of, _solver(solver_spec))
+
+
 def refined_model(solver_spec: tuple, model, hist, t0, R0, n_frames: int = 40, rounds: int = 2, measure_joints: bool = True):
     """A better skeleton for `model` from labeled history (F, M, 3): the limb joints the history turned are
     measured from their segments' own motions (`calibration.functional_joints`); then poses of up to
@@ -1097,7 +1103,8 @@ def recalibrated_model(solver_spec: tuple, model, hist: np.ndarray, mirror_of: n
             return None
     elif np.ptp(last[:, 2]) < RECALIBRATE_MIN_HEIGHT_M:
         return None  # not standing now, nor lying: its history since is no calibration's (kneeling to prone)
-    result = calibration.calibrate_from_history(hist, mirror_of)
+    solver = _solver(solver_spec)
+    result = calibration.calibrate_from_history(hist, mirror_of, solver)
     if result is None:
         return None
     seg, off, joints, _, _, layout = result
@@ -1106,7 +1113,6 @@ def recalibrated_model(solver_spec: tuple, model, hist: np.ndarray, mirror_of: n
         return None  # the same person: its history was not one to calibrate from (going prone)
     new = dataclasses.replace(model, marker_segment=seg, marker_offsets_m=off, joint_offsets_m=joints,
                               layout_offsets_m=off, layout_rms_m=layout)
-    solver = _solver(solver_spec)
     frames = hist[np.flatnonzero(np.isfinite(hist[..., 0]).sum(1) >= 8)[-RECALIBRATE_JUDGE_FRAMES:]]
     if len(frames) < 3:
         return None
