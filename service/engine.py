@@ -792,7 +792,6 @@ class Engine:
             if len(track) >= MIRROR_FRAMES:
                 if self._rides_on_body(track):
                     self._add_markers(s, frame, [track], [s.mirrors[r][:2]])
-                    s.mirrors = None  # (the snapshots have the old marker count)
                     return
                 del track[: len(track) - MIRROR_FRAMES]  # keep testing the most recent window
         s.mirror_tracks = tracks
@@ -929,6 +928,9 @@ class Engine:
         st.labeled = np.isfinite(cur[:, 0])
         s.model, s.state = model, st
         s.history = hist
+        # the mirror images and their candidate tracks are of the old marker count (a track's snapshots
+        # compared with the grown model's crashed the engine: two markers named by their images in turn)
+        s.mirrors, s.mirror_tracks = None, {}
 
     def _output(self, s: _Subject, frame, res: tracker.StepResult, to_frame) -> SubjectOutput:
         idx = to_frame[res.point_index]  # back to the frame's own indexing (non-finite points dropped)

@@ -513,3 +513,26 @@ def test_a_lost_forearm_one_of_whose_markers_left_its_layout_is_found_by_its_agr
     free = np.isin(np.arange(len(now)), forearm) & in_view
     found = segment_search._search_segments(model, st, points, free, labeled, cur, ~labeled & (perf.marker_segment == k))
     assert found == {int(i): int(i) for i in forearm if i != hidden}
+
+
+def test_a_head_found_whole_with_left_and_right_swapped_is_refused_by_its_joint():
+    """`_mirrored`: a head band's four markers keep their distances under a left-right swap; with the neck
+    joint where the trunk holds it as a fifth point, the true assignment fits (the identity, to skin noise)
+    and the swap does not: refused. The true one is not, nor a triangle's (three markers) true assignment."""
+    from protocol.skeleton import SEGMENTS
+    from service.calibration import world_transforms
+
+    perf, model, st, old, _, _ = turned_unseen(np.random.default_rng(3), {})
+    head = SEGMENTS.index("head")
+    _, pw = world_transforms(st.t_root_m, st.R_parent_segment, perf.joint_offsets_m)
+    names = [n.split(":")[-1] for n in perf.marker_names]
+    band = {n: names.index(n) for n in ("LFHD", "RFHD", "LBHD", "RBHD")}
+    assert all(perf.marker_segment[i] == head for i in band.values())
+    points = old + np.random.default_rng(0).normal(0.0, 0.002, old.shape)
+    true = {i: i for i in band.values()}
+    swapped = {band["LFHD"]: band["RFHD"], band["RFHD"]: band["LFHD"], band["LBHD"]: band["RBHD"],
+               band["RBHD"]: band["LBHD"]}
+    assert not segment_search._mirrored(model, true, points, pw[head])
+    assert segment_search._mirrored(model, swapped, points, pw[head])
+    three = {i: i for i in list(band.values())[:3]}
+    assert not segment_search._mirrored(model, three, points, pw[head])
