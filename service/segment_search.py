@@ -124,7 +124,7 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
             assignment = _search_free_segment(model, pw, points, pool, los, k, observed)
         if assignment and _rival_fits(model, pw, points, assignment, k, searched):
             assignment = None
-        if assignment and len(lab) == 0 and observed[PARENTS[k]] and _mirrored(model, assignment, points, pw[k]):
+        if assignment and len(lab) == 0 and k > 0 and observed[PARENTS[k]] and _mirrored(model, assignment, points, pw[k]):
             assignment = None
         if assignment:
             found.update(assignment)
@@ -145,10 +145,10 @@ def _mirrored(model: SubjectModel, assignment: dict[int, int], points: np.ndarra
     """Whether a segment's markers found on points (`assignment`, none of them labeled before) fit the
     model, with the segment's joint where its parent holds it (`joint_m`), far better under another
     assignment of the same points. A head band's four markers keep their distances, and nearly their
-    distances from the neck, under a left-right swap: a head hidden whole came back with the swap taken,
-    fitting 9 mm to the true labels' 9 mm by the searches' own tests, and the fit turned the head upside down
-    to follow it for the rest of the run (two players at L3, seed 17). The joint is a point off the band's
-    plane: registered with it, the swap misfits by centimetres."""
+    distances from the neck, under a left-right swap: a head hidden whole came back with the swap taken (the
+    search's best hypotheses fitted alike, 9.3-10.2 mm), and the fit turned the head upside down to follow
+    it for the rest of the run (two players at L3, seed 17). The joint is a point off the band's plane:
+    registered with it, the swap misfits by centimetres. (The root's joint is no parent's: not judged.)"""
     markers = np.array(list(assignment))
     n = len(markers)
     if n < 3 or n > MIRROR_MAX_MARKERS:
