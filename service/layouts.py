@@ -106,6 +106,14 @@ JOINT_MIN_MISFIT_M = 0.015
 #: at L3 had the right wrist labels swapped for 1-2.5 s. On every segment: L3 98.028 %, a head band's
 #: near-square layout, which its joint barely tells, stayed permuted on 85_12, -3.3 points.)
 TWISTING_SEGMENTS = (SEGMENTS.index("l_forearm"), SEGMENTS.index("r_forearm"))
+#: ... unless the relabelling fits under this share of the labels' misfit: the joint is where the latest fit
+#: puts it, and the fit follows the labels, so a wrong label pulls the joint its way (a serving wrist label
+#: re-acquired on its neighbour's point, the forearm rolled to fit it: the handover back fitted the layout
+#: to 0.4-1.4 mm, the labels 15-16 mm, and the joint refused it for 30 frames, two players at L2, seed 2).
+#: Pronation's swap fits at 0.17 of the labels' misfit in a test's 135 degree turn, 0.3 on 135_02. (Dev
+#: suite, 18 realizations: 2 runs moved, both up: two players L2 99.443 -> 99.452 %, the tennis player L3
+#: 98.374 -> 98.386 %; at 0.2 HDM05 lost 0.06 on a run too, and at 0.4 135_02 L3 fell 99.17 -> 99.07 %.)
+TWIST_CLEAR_SHARE = 0.1
 #: Segments that bend at their far end: a foot's toe marker sits on the toes, which bend at the metatarsal
 #: heads (kneeling, on tiptoe), and the rigid layout does not follow them: 135_02's right toe marker came
 #: 5.5 cm nearer the heel for seconds: heel and toe labels misfit the layout by 28 mm RMS, and as heel
@@ -748,7 +756,8 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
         take = unique and rms[best] < min(SHAPE_GAIN * rms0[r], SHAPE_GOOD_RMS_M) and symmetric_rms[best] > 2.0 * rms[best]
         if take and ks[r] in BENDING_SEGMENTS and (maps[best] >= len(lab)).any():  # (see BENDING_SEGMENTS)
             take = rms[best] <= tol[r]
-        if take and ks[r] in TWISTING_SEGMENTS and symmetric_rms[best] < SHAPE_DISTINCT_M:  # (see TWISTING_SEGMENTS)
+        if (take and ks[r] in TWISTING_SEGMENTS and symmetric_rms[best] < SHAPE_DISTINCT_M
+                and rms[best] > TWIST_CLEAR_SHARE * rms0[r]):  # (see TWISTING_SEGMENTS)
             joint_fit = _joint_fits(model, st, ks[r], lab, slot, maps, np.array([0, best]), cur)
             take = joint_fit[1] <= joint_fit[0]
         if take:

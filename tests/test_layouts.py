@@ -215,6 +215,40 @@ def test_a_twisted_forearms_wrist_labels_are_swapped_only_where_its_joint_agrees
         assert set(np.flatnonzero(changed)) == {wra, wrb} and idx[wra] == wrb and idx[wrb] == wra
 
 
+def test_a_wrist_label_on_its_neighbours_point_is_handed_back_though_the_fit_followed_it():
+    """A serving wrist's RWRB label re-acquired on RWRA's point (RWRA unlabeled), and the fit, which follows
+    the labels, rolled the forearm so that the elbow sits where the wrong labels put it: the joint test of
+    a twisting segment (TWISTING_SEGMENTS) prefers the labels. But the handover back fits the layout under
+    TWIST_CLEAR_SHARE of their misfit (here exactly, against the wrist pair's distance), which pronation
+    does not reach: it is taken (two players at L2, seed 2: 30 frames refused at 0.4-1.4 against 15-16 mm)."""
+    perf, model, points, st, _ = _with_layouts("r_forearm")
+    m, layout = len(perf.marker_names), model.layout_offsets_m
+    frm, wra, wrb, fin = (perf.marker_names.index(n) for n in ("RFRM", "RWRA", "RWRB", "RFIN"))
+    R = Rotation.from_quat(perf.rotations_xyzw[0]).as_matrix()
+    idx = np.arange(m)
+    idx[wrb], idx[wra] = wra, -1  # RWRB's label on RWRA's point
+    st.provisional[wrb] = layouts.PROBATION_FRAMES  # (just re-acquired)
+    wrong, right = [frm, wrb, fin], [frm, wra, fin]
+    misfit = layouts._kabsch_rms(layout[[wrong, right]], np.broadcast_to(points[[frm, wra, fin]], (2, 3, 3)), np.ones((2, 3), bool))
+    assert misfit[1] < layouts.TWIST_CLEAR_SHARE * misfit[0]
+    k = perf.marker_segment[frm]
+    from service.calibration import world_transforms
+
+    elbow = world_transforms(perf.root_position_m[0], R, perf.joint_offsets_m)[1][k]
+    _, origin = track_state.rigid_motion(layout[wrong], points[[frm, wra, fin]])  # where the wrong labels put it
+    st.t_root_m, st.R_parent_segment = perf.root_position_m[0] + origin - elbow, R
+    st.skel_pred_m = points.copy()  # (a fit to ask)
+    rows = np.array([0, 1])
+    maps = np.array([[0, 1, 2], [0, 3, 2]])  # the labels, and RWRB's handed to RWRA
+    slot = np.array([frm, wrb, fin, wra])
+    joint_fit = layouts._joint_fits(model, st, k, np.array(wrong), slot, maps, rows, track_state._gather(points, idx))
+    assert joint_fit[1] > joint_fit[0]  # the joint alone would refuse it
+    changed = np.zeros(m, bool)
+    for _ in range(layouts.SHAPE_CONFIRM + 1):
+        changed |= _checked(lambda i, cur: layouts._relabel_by_shape(model, st, points, i, cur), points, idx)
+    assert idx[wra] == wra and idx[wrb] == -1 and changed[[wra, wrb]].all()
+
+
 def test_layouts_are_trusted_from_the_frames_they_were_calibrated_from():
     """A calibration that lands after the seed starts with every segment's layout trusted where the
     labeled history fits it, so a swap right after it can be undone (a tennis serve at 50 Hz swapped the
