@@ -586,7 +586,7 @@ def _misfit(H, sq, cnt):
 @_jit
 def kabsch_rms(A, B, w):
     """RMS misfit (C,) of the best rigid motion taking A onto B, both (C, N, 3), over the points where w
-    (C, N) is True (`_misfit`). (layouts._kabsch_rms)"""
+    (C, N) is True (`_misfit`). (track_state._kabsch_rms)"""
     n_c, n_p = A.shape[0], A.shape[1]
     out = np.empty(n_c)
     H = np.empty((3, 3))

@@ -30,6 +30,7 @@ from service.track_state import (
     SubjectModel,
     TrackState,
     _gather,
+    _kabsch_rms,
     _joints_m,
     _norm,
     rigid_motion,
@@ -134,16 +135,6 @@ SHAPE_MAX_HANDOVER_M = 0.2  # ... nor hand a label to an unlabeled marker farthe
 SHAPE_MIN_LABELED = 2  # segments with this many labeled markers are checked (two: their distance, against a spare marker's)
 SHAPE_ALL_MAPS = 5  # segments with up to this many labels try every permutation of them, larger ones every swap
 PROBATION_FRAMES = 60  # frames a re-acquired label is re-checked against the partners' long-run distances
-
-
-def _kabsch_rms(A: np.ndarray, B: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """RMS misfit (C,) of the best rigid motion taking A onto B, both (C, N, 3), over the points where
-    w (C, N) is True. The optimal trace is s1 + s2 + sign(det H) s3 over the singular values of the
-    cross-covariance H (Kabsch), so no rotation is formed, and they are the square roots of H^T H's
-    eigenvalues, in closed form (the trigonometric solution of the characteristic cubic)."""
-    # (a compiled loop, `kernels`: one call instead of ~50 numpy calls on small batches; A and B may be
-    # broadcast views, the kernel takes writable contiguous arrays of one type: one compilation)
-    return kernels.kabsch_rms(np.require(A, np.float64, "CW"), np.require(B, np.float64, "CW"), np.require(w, bool, "CW"))
 
 
 def _layout_fits(model: SubjectModel, cur: np.ndarray, sel: np.ndarray, ks: np.ndarray):

@@ -28,6 +28,7 @@ from service.track_state import (
     SubjectModel,
     TrackState,
     _joints_m,
+    _kabsch_rms,
     _norm,
     _observed_segments,
     rigid_motion,
@@ -156,8 +157,7 @@ def _mirrored(model: SubjectModel, assignment: dict[int, int], points: np.ndarra
     maps = np.array(list(itertools.permutations(range(n))))  # the identity first
     A = np.concatenate([np.zeros((len(maps), 1, 3)), model.marker_offsets_m[markers[maps]]], axis=1)
     B = np.broadcast_to(np.vstack([joint_m[None], points[list(assignment.values())]]), A.shape)
-    rms = kernels.kabsch_rms(np.require(A, np.float64, "CW"), np.require(B, np.float64, "CW"),
-                             np.ones(A.shape[:2], bool))
+    rms = _kabsch_rms(A, B, np.ones(A.shape[:2], bool))
     return bool(rms[0] >= MIRROR_JOINT_MIN_M and rms[1:].min() < MIRROR_JOINT_GAIN * rms[0])
 
 

@@ -145,6 +145,16 @@ def rigid_motion(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return kernels.rigid_motion(np.require(a, np.float64, "CW"), np.require(b, np.float64, "CW"))
 
 
+def _kabsch_rms(A: np.ndarray, B: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """RMS misfit (C,) of the best rigid motion taking A onto B, both (C, N, 3), over the points where
+    w (C, N) is True. The optimal trace is s1 + s2 + sign(det H) s3 over the singular values of the
+    cross-covariance H (Kabsch), so no rotation is formed, and they are the square roots of H^T H's
+    eigenvalues, in closed form (the trigonometric solution of the characteristic cubic)."""
+    # (a compiled loop, `kernels`: one call instead of ~50 numpy calls on small batches; A and B may be
+    # broadcast views, the kernel takes writable contiguous arrays of one type: one compilation)
+    return kernels.kabsch_rms(np.require(A, np.float64, "CW"), np.require(B, np.float64, "CW"), np.require(w, bool, "CW"))
+
+
 def _joints_m(model: SubjectModel, st: TrackState) -> np.ndarray:
     """World positions (14, 3) of the segment origins in the current pose. Kept until the pose changes (a
     fit is collected: new arrays, never changed in place), since the searches ask several times a frame."""

@@ -920,8 +920,8 @@ def test_a_calibration_whose_skeleton_misfits_its_history_gives_way_to_one_that_
 
 def test_a_real_seed_calibration_is_one_whose_skeleton_poses_its_history():
     """Real data: the dribbling player's seed (cmu basketball, L2, seed 1; the engine's last 240 frames).
-    Judged by its static score alone, the calibration comes from the fullest frame, a knee bent, with the
-    heels voted onto the shanks: posed by the solver on the history it misfits by 69 mm at the median (the
+    Judged by its static score alone, the calibration comes from the fullest frame, with the heels voted
+    onto the shanks: posed by the solver on the history it misfits by 69 mm at the median (the
     engine's solves missed by 90-110 mm for 1.6 s after the seed, the left foot 0.3 m off). With the solver
     judging, another frame's calibration is taken, and it poses the history to 10 mm."""
     from benchmarks.skeleton import seed_history
