@@ -59,6 +59,18 @@ SHAPE_CLEAR_LAYOUT_M = 0.0025
 SHAPE_CLEAR_HANDOVER_LAYOUT_M = 0.006
 SHAPE_CLEAR_SHARE = 0.6
 SHAPE_CLEAR_FIT_M = 0.002
+#: ... but a label still on probation (re-acquired, PROBATION_FRAMES), handed to an unlabeled marker of its
+#: segment, is suspect anyway: that relabelling counts as clear when it fits the layout as right labels do on
+#: a check (`_fit_tolerance`), and the labels misfit it by this much. A serving wrist label re-acquired on its
+#: neighbour's point: handed back it fitted the forearm's layout at 2.3-5.9 mm, the finger marker, which the
+#: layout carries, off its seed place by the hand's bend, against 15-19 mm; over twice the 1.1 mm
+#: calibration residual, it was refused for 23 frames, until it fitted under 2 mm (tennis at L2, seed 6;
+#: now taken 10 frames sooner, where the joint agreed). At 8-9 mm a wrist pair 10 mm apart was
+#: handed over wrongly (HDM05 at L3). (Dev suite, 18 realizations: 20 runs moved, 17 up; L2 99.318 ->
+#: 99.322 %, L3 98.585 -> 98.588 %; two players L2 99.452 -> 99.465 %, tennis precision L2 99.879 ->
+#: 99.885 %. Without the misfit's floor, on every segment, the HDM05 run lost 0.5; on the forearms alone,
+#: 85_12's five runs up went too.)
+REACQUIRED_HANDOVER_MISFIT_M = SHAPE_MIN_RMS_M
 #: A label tracked all along is handed to an unlabeled marker of its segment (which `relabel_candidates`
 #: blocks: it is not suspected of sitting on another's point) where the evidence is overwhelming: a segment
 #: of SHAPE_CLEAR_MIN_LABELS labels or more misfitting its layout by this much, and fitting it with the label
@@ -701,11 +713,14 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
         # evidence: the labels misfit the layout by about that move, and the relabelled ones fit it as tightly
         # as in calibration (a toe label on the fifth metatarsal's point, 11 mm apart in the foot's layout:
         # 10 mm misfit, 0.4 mm relabelled; 85_12 at L2). Not with two labels: they match one distance, and a
-        # head band's sides and diagonals offer several.
+        # head band's sides and diagonals offer several. A label on probation handed back to an unlabeled
+        # marker (see REACQUIRED_HANDOVER_MISFIT_M) need only fit as right labels do on a check (`tol`).
+        handback = (maps >= len(lab)) & (st.provisional[lab] > 0)[None]
         clear = (
             can_clear[r] & (tight[r] | (maps >= len(lab)).any(1)) & (symmetric_rms >= SHAPE_CLEAR_MIN_M)
             & (rms0[r] >= SHAPE_CLEAR_SHARE * symmetric_rms)
-            & (rms <= max(SHAPE_CLEAR_FIT_M, 2.0 * typical[r]))
+            & ((rms <= max(SHAPE_CLEAR_FIT_M, 2.0 * typical[r]))
+               | ((rms <= tol[r]) & handback.any(1) & (rms0[r] >= REACQUIRED_HANDOVER_MISFIT_M)))
         )
         unseen = (symmetric_rms < SHAPE_DISTINCT_M) & ~clear  # relabellings the layout cannot tell
         mirror = _mirror_by_joint(model, st, ks[r], lab, slot, maps, cur, unseen & ~blocked & (rms < SHAPE_GOOD_RMS_M))
