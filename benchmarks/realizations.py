@@ -9,7 +9,8 @@ Runs the adaptive engine in seeded mode on every labeled file x level x corrupti
 at its first 25 s, as the benchmark), in 2 processes: 8 files x L2/L3 x 18 seeds take ~5 min. Prints, per
 file and level, the mean and the worst accuracy, the mean precision and the skeleton solves' residual p90
 (the median and the worst of the runs: is the skeleton still on its markers?); with --compare, beside those
-of an earlier run's JSON, and every run that moved by 0.005 % or more. `--mode tpose` runs the files with a
+of an earlier run's JSON, and every run that moved by 0.005 % or more; and, for files whose own labels
+are wrong somewhere (`benchmarks.truth_errors`), the means with those spells left unscored. `--mode tpose` runs the files with a
 T-pose (`benchmarks.run.TPOSE_FILES`: HDM_mm, squat) with nothing given instead, scored from frame 0.
 """
 
@@ -48,8 +49,16 @@ def run(data_dir: Path, files: list[str], levels: list[str], seeds: list[int], w
     results = run_jobs(data_dir, jobs, workers, str(Path(ServiceConfig().cache_dir).expanduser()))
     rows = [dict(file=r.job.file, level=r.job.level, seed=r.job.seed, acc=100 * r.score.accuracy,
                  prec=100 * r.score.precision, n=int(r.score.n_true_points), wrong=int(r.score.n_wrong),
-                 unlabeled=int(r.score.n_unlabeled), fit_p90_mm=_p90(r.fit_rms_mm), error=r.error) for r in results]
+                 unlabeled=int(r.score.n_unlabeled), fit_p90_mm=_p90(r.fit_rms_mm), error=r.error,
+                 **_known_errors_out(r)) for r in results]
     return sorted(rows, key=lambda r: (r["file"], r["level"], r["seed"]))
+
+
+def _known_errors_out(r) -> dict:
+    """{acc_out, prec_out} [%]: the run scored with its file's own label errors left out
+    (`benchmarks.truth_errors`), where the file has any listed; else nothing."""
+    s = r.score_known_errors_out
+    return {} if s is None else dict(acc_out=100 * s.accuracy, prec_out=100 * s.precision)
 
 
 def _p90(values: list[float]) -> float:
@@ -87,6 +96,14 @@ def summary(rows: list[dict], before: list[dict] | None = None) -> list[str]:
         if oo:
             line += f" (before, same runs: {sum(r['acc'] for r in oo) / len(oo):.3f} / {sum(r['prec'] for r in oo) / len(oo):.3f} %)"
         lines.append(line)
+    out = [r for r in rows if "acc_out" in r]
+    if out:
+        lines.append("\nwith the files' own label errors left unscored (benchmarks/truth_errors.py), same runs:")
+        for (file, level) in sorted({(r["file"], r["level"]) for r in out}):
+            rr = [r for r in out if (r["file"], r["level"]) == (file, level)]
+            lines.append(f"- {file} {level}: accuracy mean {sum(r['acc_out'] for r in rr) / len(rr):.3f} % "
+                         f"(scored: {sum(r['acc'] for r in rr) / len(rr):.3f}), precision mean "
+                         f"{sum(r['prec_out'] for r in rr) / len(rr):.3f} % (scored: {sum(r['prec'] for r in rr) / len(rr):.3f})")
     moved = [(r, old[k]) for r in rows if (k := (r["file"], r["level"], r["seed"])) in old
              and max(abs(r["acc"] - old[k]["acc"]), abs(r["prec"] - old[k]["prec"])) >= 0.005]
     if before:

@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks import truth_errors
 from benchmarks.nnt import NearestNeighbourTracker
 from benchmarks.score import Score, plot_errors, score
 from recordings.corruption import LEVELS, SEED_S, CorruptedSequence, corrupt
@@ -93,6 +94,7 @@ class JobResult:
     error: str = ""  # non-empty if the run failed (reported in the table, not fatal)
     fit_rms_mm: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))  # engine: scored solves' residuals
     segments: dict = dataclasses.field(default_factory=dict)  # engine: "Subject:Marker" -> segment at the end
+    score_known_errors_out: Score | None = None  # the score with the file's own label errors unscored (`truth_errors`)
 
 
 # ----------------------------------------------------------------------------------------------- data
@@ -209,11 +211,13 @@ def run_job(data_dir: str, job: Job) -> JobResult:
         error = ""
     except Exception as e:  # noqa: BLE001 - one failing labeler must not lose the other rows
         given, times, error = [None] * seq.n_frames, np.zeros(0), f"{type(e).__name__}: {e}"
+    cleaned = truth_errors.unscored(job.file, seq, given) if job.mode == "seeded" else None
     return JobResult(
         job=job,
         n_frames=seq.n_frames,
         rate_hz=seq.rate_hz,
         score=score(seq, given, job.mode, first),
+        score_known_errors_out=score(*cleaned, job.mode, first) if cleaned else None,
         step_s=times.astype(np.float32),
         solved_fraction=solved[0] / solved[1] if solved[1] else float("nan"),
         subjects=subjects,
