@@ -62,14 +62,14 @@ SHAPE_CLEAR_FIT_M = 0.002
 #: ... but a label still on probation (re-acquired, PROBATION_FRAMES), handed to an unlabeled marker of its
 #: segment, is suspect anyway: that relabelling counts as clear when it fits the layout as right labels do on
 #: a check (`_fit_tolerance`), and the labels misfit it by this much. A serving wrist label re-acquired on its
-#: neighbour's point: handed back it fitted the forearm's layout at 2.3-5.9 mm, the finger marker, which the
-#: layout carries, off its seed place by the hand's bend, against 15-19 mm; over twice the 1.1 mm
-#: calibration residual, it was refused for 23 frames, until it fitted under 2 mm (tennis at L2, seed 6;
-#: now taken 10 frames sooner, where the joint agreed). At 8-9 mm a wrist pair 10 mm apart was
-#: handed over wrongly (HDM05 at L3). (Dev suite, 18 realizations: 20 runs moved, 17 up; L2 99.318 ->
-#: 99.322 %, L3 98.585 -> 98.588 %; two players L2 99.452 -> 99.465 %, tennis precision L2 99.879 ->
-#: 99.885 %. Without the misfit's floor, on every segment, the HDM05 run lost 0.5; on the forearms alone,
-#: 85_12's five runs up went too.)
+#: neighbour's point: handed back, it fitted the forearm's layout at 2.3-5.9 mm against the labels' 15-19 mm
+#: (the finger marker, which the layout carries, off its seed place with the hand's bend). Over twice the
+#: 1.1 mm calibration residual, it was refused for 23 frames, until it fitted under 2 mm (tennis at L2, seed
+#: 6; now taken 10 frames sooner, where the joint agreed). With labels misfitting by 8-9 mm, a wrist handover
+#: that moves the layout 10 mm RMS was wrong (HDM05 at L3). (Dev suite, 18 realizations: 20 runs moved, 17
+#: up; L2 99.318 -> 99.322 %, L3 98.585 -> 98.588 %; two players L2 99.452 -> 99.465 %, the tennis player's
+#: precision at L2 99.879 -> 99.885 %. Without the misfit's floor the HDM05 run lost 0.5, on every segment or
+#: on the forearms alone, where 85_12's five runs up went too.)
 REACQUIRED_HANDOVER_MISFIT_M = SHAPE_MIN_RMS_M
 #: A label tracked all along is handed to an unlabeled marker of its segment (which `relabel_candidates`
 #: blocks: it is not suspected of sitting on another's point) where the evidence is overwhelming: a segment
