@@ -10,8 +10,9 @@ at its first 25 s, as the benchmark), in 2 processes: 8 files x L2/L3 x 18 seeds
 file and level, the mean and the worst accuracy, the mean precision and the skeleton solves' residual p90
 (the median and the worst of the runs: is the skeleton still on its markers?); with --compare, beside those
 of an earlier run's JSON, and every run that moved by 0.005 % or more; and, for files whose own labels
-are wrong somewhere (`benchmarks.truth_errors`), the means with those spells left unscored. `--mode tpose` runs the files with a
-T-pose (`benchmarks.run.TPOSE_FILES`: HDM_mm, squat) with nothing given instead, scored from frame 0.
+are wrong somewhere (`benchmarks.truth_errors`), the means with those spells left unscored. `--mode tpose`
+runs the files with a T-pose (`benchmarks.run.TPOSE_FILES`: HDM_mm, squat) with nothing given instead,
+scored from frame 0.
 """
 
 from __future__ import annotations

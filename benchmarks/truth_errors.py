@@ -7,7 +7,7 @@ also prints its means with these spells left unscored, so that the part of a gap
 measured rather than guessed.
 
 A spell is listed here only with evidence from the file itself, checked by `tests/test_truth_errors.py`: a
-labeled marker far off its rigid partners inside the spell and on them outside it.
+labeled marker far off a rigid partner inside the spell, and on it in the second before and after.
 """
 
 from __future__ import annotations

@@ -255,8 +255,8 @@ def test_a_reacquired_wrist_label_is_handed_back_though_the_hand_bent(reacquired
     marker, which the forearm's layout carries, off its seed place by the wrist's bend (12 degrees of
     deviation): handed back, the labels fit the layout at 5-6 mm, beyond what clear evidence has asked
     (twice the 2 mm calibration residual) but within what right labels fit on a check, and against 19 mm
-    as they are. A label on probation is suspect: it is handed back (a serving wrist, tennis at L2: 0.2 s at
-    2-6 mm against 15-19 mm), the joint agreeing. One tracked all along is not, short of overwhelming
+    as they are. A label on probation is suspect: it is handed back (a serving wrist, tennis at L2: refused 0.46 s
+    at 2-6 mm against 15-19 mm), the joint agreeing. One tracked all along is not, short of overwhelming
     evidence."""
     from service.calibration import world_transforms
 
