@@ -29,7 +29,6 @@ class LabelError:
     markers: tuple[str, ...]
     marker: str
     partner: str
-    why: str
 
 
 #: The tennis serve (Derrick) at 50 Hz, the arm whipping forward: the file's labels cycle the right upper arm,
@@ -40,9 +39,9 @@ class LabelError:
 _SERVE = ("Derrick:RUPA", "Derrick:RELB", "Derrick:RFRM")
 KNOWN: dict[str, tuple[LabelError, ...]] = {
     "kineticstoolkit/kinematics_tennis_serve.c3d": (
-        LabelError(190, 196, _SERVE, "Derrick:RUPA", "Derrick:RSHO", "the serving arm's labels cycle"),),
+        LabelError(190, 196, _SERVE, "Derrick:RUPA", "Derrick:RSHO"),),
     "kineticstoolkit/kinematics_tennis_serve_2players.c3d": (
-        LabelError(139, 145, _SERVE, "Derrick:RUPA", "Derrick:RSHO", "the serving arm's labels cycle"),),
+        LabelError(139, 145, _SERVE, "Derrick:RUPA", "Derrick:RSHO"),),
 }
 
 

@@ -715,12 +715,13 @@ def _relabel_by_shape(model: SubjectModel, st: TrackState, points: np.ndarray, p
         # 10 mm misfit, 0.4 mm relabelled; 85_12 at L2). Not with two labels: they match one distance, and a
         # head band's sides and diagonals offer several. A label on probation handed back to an unlabeled
         # marker (see REACQUIRED_HANDOVER_MISFIT_M) need only fit as right labels do on a check (`tol`).
-        handback = (maps >= len(lab)) & (st.provisional[lab] > 0)[None]
+        handed = maps >= len(lab)  # (C, n): which labels each relabelling hands to an unlabeled marker
+        handback = (handed & (st.provisional[lab] > 0)[None]).any(1)
         clear = (
-            can_clear[r] & (tight[r] | (maps >= len(lab)).any(1)) & (symmetric_rms >= SHAPE_CLEAR_MIN_M)
+            can_clear[r] & (tight[r] | handed.any(1)) & (symmetric_rms >= SHAPE_CLEAR_MIN_M)
             & (rms0[r] >= SHAPE_CLEAR_SHARE * symmetric_rms)
             & ((rms <= max(SHAPE_CLEAR_FIT_M, 2.0 * typical[r]))
-               | ((rms <= tol[r]) & handback.any(1) & (rms0[r] >= REACQUIRED_HANDOVER_MISFIT_M)))
+               | ((rms <= tol[r]) & handback & (rms0[r] >= REACQUIRED_HANDOVER_MISFIT_M)))
         )
         unseen = (symmetric_rms < SHAPE_DISTINCT_M) & ~clear  # relabellings the layout cannot tell
         mirror = _mirror_by_joint(model, st, ks[r], lab, slot, maps, cur, unseen & ~blocked & (rms < SHAPE_GOOD_RMS_M))
