@@ -1,7 +1,7 @@
 """Where one seeded run loses its points: what to look at once `benchmarks.realizations` has shown a run
 that fell.
 
-    python3 -m benchmarks.losses FILE [--level L3] [--seed 13] [--top 12]
+    python3 -m benchmarks.losses FILE [--level L3] [--seed 13 | --seeds 0-17] [--top 12]
 
 Runs the adaptive engine on one corrupted realization (seeded, the file capped at its first 25 s, as the
 benchmark) and lists, from the first scored frame on:
@@ -10,6 +10,12 @@ benchmark) and lists, from the first scored frame on:
   from a gap is allowed a few frames), with their spells, and on how many of those frames its name was on
   another point (a swap, not a loss of track);
 - the markers the seed never showed, which no labeler can name (they are out of the score's ceiling).
+
+With --seeds (e.g. 0-17) it runs every one of those realizations (in two processes) and sums what they
+lost: the markers losing most (labels given on their points wrongly, and frames unlabeled in view), the
+stretches of the recording where the losses fall (one-second windows: a tennis player's serves), and the
+longest spells, each with its seed: where a change should look first, once `benchmarks.realizations`
+has shown a file's mean short of its target.
 
 With --true-skeleton it runs once more, each subject's skeleton replaced, as soon as it has one after the
 seed, by one aligned to the whole run's true labels (`true_skeleton`; refinement then off), and prints both
@@ -23,6 +29,7 @@ import argparse
 import collections
 import copy
 import dataclasses
+import multiprocessing
 import sys
 from pathlib import Path
 
@@ -30,22 +37,29 @@ import numpy as np
 
 from benchmarks.run import (DEFAULT_DATA, FULL_MAX_S, UsageError, corrupted, drive, engine_step, init_worker,
                             labeled_files, plan, select_files)
+from benchmarks.skeleton import parse_seeds
 
 #: a marker counts as lost while in view once it has been in view this many frames running
 SETTLE_FRAMES = 10
+
+
+def _wrong_labels(seq, given: list, first: int):
+    """(frame, label given, true label or "" for a ghost's point) of every wrong label from frame `first`."""
+    for f in range(first, seq.n_frames):
+        if given[f] is None:
+            continue
+        for g, t in zip(given[f], seq.true_labels(f)):
+            if g and g != t:
+                yield f, g, t
 
 
 def wrong_pairs(seq, given: list, first: int) -> list[tuple[str, str, int, int]]:
     """(label given, true label or "" for a ghost's point, frames, first frame), the most frames first."""
     count: collections.Counter = collections.Counter()
     start: dict[tuple[str, str], int] = {}
-    for f in range(first, seq.n_frames):
-        if given[f] is None:
-            continue
-        for g, t in zip(given[f], seq.true_labels(f)):
-            if g and g != t:
-                count[(g, t)] += 1
-                start.setdefault((g, t), f)
+    for f, g, t in _wrong_labels(seq, given, first):
+        count[(g, t)] += 1
+        start.setdefault((g, t), f)
     return [(g, t, n, start[(g, t)]) for (g, t), n in count.most_common()]
 
 
@@ -110,6 +124,85 @@ def report(seq, given: list, first: int, top: int = 12) -> list[str]:
     return lines
 
 
+@dataclasses.dataclass(frozen=True)
+class RunLosses:
+    """What one realization lost (`run_losses`), for `summary`: its seed; per true marker (or "" for ghost
+    points), the wrong labels on its points and the frames it was unlabeled in view; the frames of each
+    loss; the spells (frames, kind, label, point's true label or "", first frame)."""
+
+    seed: int
+    wrong: dict
+    unlabeled: dict
+    loss_frames: list
+    spells: list
+
+
+def run_losses(seq, given: list, first: int) -> RunLosses:
+    """One realization's losses from frame `first` on, as `summary` sums them over realizations: wrong labels
+    (`_wrong_labels`) and markers unlabeled in view (`unlabeled_in_view`)."""
+    wrong: collections.Counter = collections.Counter()
+    frames = []
+    for f, _, t in _wrong_labels(seq, given, first):
+        wrong[t] += 1
+        frames.append(f)
+    spells = [(n, "wrong", g, t, f0) for g, t, n, f0 in wrong_pairs(seq, given, first)]
+    unlabeled: collections.Counter = collections.Counter()
+    for t, n, _, runs in unlabeled_in_view(seq, given, first):
+        unlabeled[t] += n
+        for a, b in runs:
+            frames += range(a, b + 1)
+            spells.append((b - a + 1, "unlabeled", t, "", a))
+    return RunLosses(seq.seed, dict(wrong), dict(unlabeled), frames, spells)
+
+
+def summary(runs: list[RunLosses], window: int, n_frames: int, first: int, top: int = 12) -> list[str]:
+    """`runs` summed, as text lines: the markers losing most, the `window`-frame stretches of the recording
+    where the losses fall, and the longest spells with their seeds (each list cut at `top`)."""
+    wrong: collections.Counter = collections.Counter()
+    unlabeled: collections.Counter = collections.Counter()
+    in_runs: collections.Counter = collections.Counter()
+    windows: collections.Counter = collections.Counter()
+    spells = []
+    for r in runs:
+        wrong.update(r.wrong)
+        unlabeled.update(r.unlabeled)
+        in_runs.update(set(r.wrong) | set(r.unlabeled))
+        windows.update(f // window for f in r.loss_frames)
+        spells += [(n, r.seed, kind, label, point, f0) for n, kind, label, point, f0 in r.spells]
+    total = sum(windows.values())
+    lines = [f"{len(runs)} runs: {sum(wrong.values())} wrong labels, {sum(unlabeled.values())} marker-frames "
+             f"unlabeled in view, from frame {first} of {n_frames}", "",
+             "markers losing most (wrong: labels given on its points; a ghost's points as \"a ghost\"):"]
+    most = sorted(set(wrong) | set(unlabeled), key=lambda t: -(wrong[t] + unlabeled[t]))
+    lines += [f"  {t or 'a ghost':24s} wrong {wrong[t]:5d}, unlabeled in view {unlabeled[t]:5d}, "
+              f"in {in_runs[t]:2d} runs" for t in most[:top]] or ["  none"]
+    lines += ["", f"where the losses fall ({window}-frame windows):"]
+    lines += [f"  frames {w * window:5d}-{(w + 1) * window - 1:5d} {n:6d} ({100 * n / total:4.1f} %)"
+              for w, n in sorted(windows.most_common(top))] or ["  none"]
+    lines += ["", "longest spells (a wrong pair's frames counted together, as in the one run's report):"]
+    for n, seed, kind, label, point, f0 in sorted(spells, key=lambda x: (-x[0], x[1]))[:top]:
+        what = f"{label} on {point or 'a ghost'}" if kind == "wrong" else f"{label} unlabeled"
+        lines.append(f"  {n:5d} frames, seed {seed:2d}, {what}, first {f0}")
+    return lines
+
+
+def _labels(seq) -> list:
+    """Each frame's labels as the adaptive engine gives them, seeded."""
+    from service.config import EngineConfig
+    from service.engine import Engine
+
+    engine = Engine(EngineConfig())
+    engine.warm_up()
+    return drive(seq, "seeded", engine_step(engine, seq.seed_frames))[0]
+
+
+def _run_losses_job(args) -> RunLosses:
+    """One realization of `main --seeds`, in a worker process: (data dir, file, level, max_frames, seed)."""
+    data_dir, file, level, max_frames, seed = args
+    seq = corrupted(data_dir, file, level, max_frames, seed)
+    return run_losses(seq, _labels(seq), seq.seed_frames)
+
+
 #: (`true_skeleton`) rounds of solving every frame and re-aligning; poses kept of every this many frames;
 #: and the alignment's prior (weaker than the engine's 0.3: the true labels are to be believed)
 TRUE_SKELETON_ROUNDS, TRUE_SKELETON_EVERY, TRUE_SKELETON_PRIOR = 3, 5, 0.05
@@ -167,11 +260,21 @@ def true_skeleton_step(engine, seq):
     return swapping
 
 
+def _run_seeds(data_dir: str, file: str, level: str, max_frames, seeds: list[int], cache_dir: str,
+               workers: int = 2) -> list[RunLosses]:
+    """`_run_losses_job` for each seed, in `workers` spawned processes (as `benchmarks.run.run_jobs`)."""
+    ctx = multiprocessing.get_context("spawn")
+    with ctx.Pool(workers, initializer=init_worker, initargs=(cache_dir,)) as pool:
+        runs = pool.map(_run_losses_job, [(data_dir, file, level, max_frames, seed) for seed in seeds])
+    return sorted(runs, key=lambda r: r.seed)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python3 -m benchmarks.losses", description=__doc__.split("\n\n")[0])
     parser.add_argument("file", help="a labeled recording: a glob or a text its path contains, matching one file")
     parser.add_argument("--level", default="L3", choices=["L0", "L1", "L2", "L3"])
     parser.add_argument("--seed", type=int, default=1, help="corruption seed (default 1, the benchmark's)")
+    parser.add_argument("--seeds", help="several corruption seeds, e.g. 0-17 or 1,4,7: their losses summed")
     parser.add_argument("--top", type=int, default=12, help="rows per list (default 12)")
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="directory of the recordings (default ../shared/data)")
     parser.add_argument("--true-skeleton", action="store_true",
@@ -183,6 +286,14 @@ def main(argv: list[str] | None = None) -> int:
         files = select_files(labeled_files(args.data), [args.file], quick=False)
         if len(files) > 1:
             raise UsageError(f"{args.file!r} matches {len(files)} files ({', '.join(files)}); name one")
+        seeds = None
+        if args.seeds is not None:
+            try:
+                seeds = parse_seeds(args.seeds)
+            except ValueError:
+                raise UsageError(f"--seeds {args.seeds!r} is not like 0-17 or 1,4,7") from None
+            if args.true_skeleton:
+                raise UsageError("--true-skeleton runs one realization: give --seed, not --seeds")
     except UsageError as e:
         print(f"benchmarks.losses: {e}", file=sys.stderr)
         return 2
@@ -194,11 +305,17 @@ def main(argv: list[str] | None = None) -> int:
     from service.config import EngineConfig, ServiceConfig
     from service.engine import Engine
 
-    init_worker(str(Path(ServiceConfig().cache_dir).expanduser()))  # the benchmark's XLA flags and cache
+    cache_dir = str(Path(ServiceConfig().cache_dir).expanduser())
+    if seeds is not None:
+        runs = _run_seeds(str(args.data), files[0], args.level, seeded[0].max_frames, seeds, cache_dir)
+        seq = corrupted(str(args.data), files[0], args.level, seeded[0].max_frames, seeds[0])
+        print(f"{Path(files[0]).name} {args.level}, seeds {args.seeds}")
+        window = max(1, round(seq.rate_hz))
+        print("\n".join(summary(runs, window, seq.n_frames, seq.seed_frames, args.top)))
+        return 0
+    init_worker(cache_dir)  # the benchmark's XLA flags and cache
     seq = corrupted(str(args.data), files[0], args.level, seeded[0].max_frames, args.seed)
-    engine = Engine(EngineConfig())
-    engine.warm_up()
-    given, _ = drive(seq, "seeded", engine_step(engine, seq.seed_frames))
+    given = _labels(seq)
     print("\n".join(report(seq, given, seq.seed_frames, args.top)))
     if args.true_skeleton:
         from benchmarks.score import score

@@ -3,10 +3,12 @@ command's refusals."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from benchmarks.losses import (SETTLE_FRAMES, main, never_in_seed, report, true_labeled_frames, true_skeleton,
-                              unlabeled_in_view, wrong_pairs)
+from benchmarks.losses import (SETTLE_FRAMES, main, never_in_seed, report, run_losses, summary, true_labeled_frames,
+                              true_skeleton, unlabeled_in_view, wrong_pairs)
 from protocol.skeleton import SEGMENTS
 from recordings.corruption import CorruptedSequence
 from tests.conftest import data_path
@@ -121,3 +123,45 @@ def test_the_command_runs_a_real_recording_again_with_the_true_skeleton_and_prin
     for line in rows.values():
         accuracy, precision = (float(x) for x in line.split()[-3::2])
         assert 90.0 <= accuracy <= 100.0 and 90.0 <= precision <= 100.0, line
+
+
+def test_the_losses_of_several_runs_are_summed_by_marker_by_window_and_by_spell():
+    """Two runs: the first gives A's label on B's point for 3 frames (A's own point unlabeled meanwhile) and
+    a label on a ghost once; the second leaves B unlabeled in view for 4 frames after it settled. The
+    summary sums them per marker (the ghost's points as a ghost), puts each loss in its window of the
+    recording, and lists the longest spells with their seeds."""
+    n = SETTLE_FRAMES + 6
+    seq = _sequence([[0, 1, -1]] * n)
+    first = SETTLE_FRAMES
+    given1 = [["s:A", "s:B", ""]] * n
+    for f in (first, first + 1, first + 2):
+        given1[f] = ["", "s:A", ""]
+    given1[first + 5] = ["s:A", "s:B", "s:C"]
+    given2 = [["s:A", "s:B", ""]] * (first + 2) + [["s:A", "", ""]] * (n - first - 2)
+    one = run_losses(seq, given1, first)
+    two = run_losses(dataclasses.replace(seq, seed=8), given2, first)
+    assert one.wrong == {"s:B": 3, "": 1} and one.unlabeled == {"s:A": 3}
+    assert two.wrong == {} and two.unlabeled == {"s:B": 4} and two.seed == 8
+    text = summary([one, two], window=4, n_frames=n, first=first)
+    assert text[0] == f"2 runs: 4 wrong labels, 7 marker-frames unlabeled in view, from frame {first} of {n}"
+    rows = {line.split()[0]: line for line in text[3:6]}
+    assert "wrong     3, unlabeled in view     4, in  2 runs" in rows["s:B"]
+    assert "wrong     0, unlabeled in view     3, in  1 runs" in rows["s:A"]
+    at_spells = next(k for k, line in enumerate(text) if line.startswith("longest spells"))
+    spells = text[at_spells + 1:]
+    assert spells[0] == f"      4 frames, seed  8, s:B unlabeled, first {first + 2}"
+    assert set(spells[1:3]) == {f"      3 frames, seed  7, s:A on s:B, first {first}",
+                                f"      3 frames, seed  7, s:A unlabeled, first {first}"}
+    windows = text[text.index("where the losses fall (4-frame windows):") + 1:at_spells - 1]
+    assert sum(int(line.split()[3]) for line in windows) == 4 + 7  # (every loss in one window)
+
+
+def test_the_command_sums_several_realizations_and_refuses_bad_seeds_in_one_sentence(capsys):
+    data = data_path("cmu/07_01.c3d").parents[1]
+    assert main(["07_01", "--level", "L2", "--seeds", "1-x", "--data", str(data)]) == 2
+    assert main(["07_01", "--level", "L2", "--seeds", "1,2", "--true-skeleton", "--data", str(data)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(line.startswith("benchmarks.losses: ") for line in err), err
+    assert main(["07_01", "--level", "L2", "--seeds", "1,2", "--data", str(data)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "07_01.c3d L2, seeds 1,2" and out[1].startswith("2 runs: "), out[:2]
