@@ -128,13 +128,17 @@ def report(seq, given: list, first: int, top: int = 12) -> list[str]:
 class RunLosses:
     """What one realization lost (`run_losses`), for `summary`: its seed; per true marker (or "" for ghost
     points), the wrong labels on its points and the frames it was unlabeled in view; the frames of each
-    loss; the spells (frames, kind, label, point's true label or "", first frame)."""
+    loss; the spells (frames, kind, label, point's true label or "", first frame); and the recording's
+    frames, rate and first scored frame."""
 
     seed: int
     wrong: dict
     unlabeled: dict
     loss_frames: list
     spells: list
+    n_frames: int
+    rate_hz: float
+    first: int
 
 
 def run_losses(seq, given: list, first: int) -> RunLosses:
@@ -152,7 +156,7 @@ def run_losses(seq, given: list, first: int) -> RunLosses:
         for a, b in runs:
             frames += range(a, b + 1)
             spells.append((b - a + 1, "unlabeled", t, "", a))
-    return RunLosses(seq.seed, dict(wrong), dict(unlabeled), frames, spells)
+    return RunLosses(seq.seed, dict(wrong), dict(unlabeled), frames, spells, seq.n_frames, seq.rate_hz, first)
 
 
 def summary(runs: list[RunLosses], window: int, n_frames: int, first: int, top: int = 12) -> list[str]:
@@ -308,10 +312,9 @@ def main(argv: list[str] | None = None) -> int:
     cache_dir = str(Path(ServiceConfig().cache_dir).expanduser())
     if seeds is not None:
         runs = _run_seeds(str(args.data), files[0], args.level, seeded[0].max_frames, seeds, cache_dir)
-        seq = corrupted(str(args.data), files[0], args.level, seeded[0].max_frames, seeds[0])
         print(f"{Path(files[0]).name} {args.level}, seeds {args.seeds}")
-        window = max(1, round(seq.rate_hz))
-        print("\n".join(summary(runs, window, seq.n_frames, seq.seed_frames, args.top)))
+        window = max(1, round(runs[0].rate_hz))
+        print("\n".join(summary(runs, window, runs[0].n_frames, runs[0].first, args.top)))
         return 0
     init_worker(cache_dir)  # the benchmark's XLA flags and cache
     seq = corrupted(str(args.data), files[0], args.level, seeded[0].max_frames, args.seed)

@@ -102,9 +102,9 @@ def summary(rows: list[dict], before: list[dict] | None = None) -> list[str]:
         lines.append("\nwith the files' own label errors left unscored (benchmarks/truth_errors.py), same runs:")
         for (file, level) in sorted({(r["file"], r["level"]) for r in out}):
             rr = [r for r in out if (r["file"], r["level"]) == (file, level)]
-            lines.append(f"- {file} {level}: accuracy mean {sum(r['acc_out'] for r in rr) / len(rr):.3f} % "
-                         f"(scored: {sum(r['acc'] for r in rr) / len(rr):.3f}), precision mean "
-                         f"{sum(r['prec_out'] for r in rr) / len(rr):.3f} % (scored: {sum(r['prec'] for r in rr) / len(rr):.3f})")
+            mean = {k: sum(r[k] for r in rr) / len(rr) for k in ("acc_out", "acc", "prec_out", "prec")}
+            lines.append(f"- {file} {level}: accuracy mean {mean['acc_out']:.3f} % (scored: {mean['acc']:.3f}), "
+                         f"precision mean {mean['prec_out']:.3f} % (scored: {mean['prec']:.3f})")
     moved = [(r, old[k]) for r in rows if (k := (r["file"], r["level"], r["seed"])) in old
              and max(abs(r["acc"] - old[k]["acc"]), abs(r["prec"] - old[k]["prec"])) >= 0.005]
     if before:
