@@ -34,6 +34,10 @@ SEGMENTS: tuple[str, ...] = (
 #: index of each segment's parent in SEGMENTS, -1 for the root. Parents always precede children.
 PARENTS: tuple[int, ...] = (-1, 0, 1, 2, 2, 4, 2, 6, 0, 8, 9, 0, 11, 12)
 
+#: index of each segment's mirror image across the body's sagittal plane (y = 0 in the rest frames): left
+#: and right limbs swap, the trunk and head mirror onto themselves
+MIRRORS: tuple[int, ...] = tuple(SEGMENTS.index({"l_": "r_", "r_": "l_"}.get(n[:2], n[:2]) + n[2:]) for n in SEGMENTS)
+
 N_SEGMENTS = len(SEGMENTS)
 N_JOINTS = N_SEGMENTS - 1  # ball joints: every segment but the root
 N_DOF = 6 + 3 * N_JOINTS

@@ -35,7 +35,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from protocol.skeleton import N_SEGMENTS, PARENTS, SEGMENTS
+from protocol.skeleton import MIRRORS, N_SEGMENTS, PARENTS, SEGMENTS
 
 S = {name: i for i, name in enumerate(SEGMENTS)}
 
@@ -1130,9 +1130,7 @@ def detect_tpose(points: np.ndarray, free: np.ndarray) -> list[np.ndarray]:
     return [idx[c] for c in clusters(points[idx]) if is_tpose(points[idx[c]])]
 
 
-#: each segment's mirror image across the body's sagittal plane (y = 0 in the rest frames): left and right
-#: limbs swap, the trunk and head mirror onto themselves
-MIRROR_SEGMENT = np.array([S[{"l_": "r_", "r_": "l_"}.get(n[:2], n[:2]) + n[2:]] for n in SEGMENTS])
+MIRROR_SEGMENT = np.array(MIRRORS)  # (each segment's mirror image, as an array to index with arrays)
 _SIDE_PREFIXES = (("Left", "Right"), ("left", "right"))
 _SIDE_SEPARATORS = "_.- "
 

@@ -19,7 +19,7 @@ import itertools
 
 import numpy as np
 
-from protocol.skeleton import N_SEGMENTS, PARENTS
+from protocol.skeleton import MIRRORS, N_SEGMENTS, PARENTS
 from service import kernels
 from service.partners import PARTNER_MIN_SAMPLES
 from service.track_state import (
@@ -59,6 +59,15 @@ RIVAL_TOL_FACTOR = 2.0
 #: at 5.1-6.7 mm and 18 right ones beyond. With this RMS and `_consensus`, on all 8 files: 78 placements
 #: taken (50 of three markers, 28 of four or five), 263 labels, 1 wrong; 30 held back as ambiguous
 SEARCH_THREE_RMS_M = 0.005
+#: ... and, when the bone's length misses too (a serving forearm's wrist pair and finger fitted their layout to
+#: 1 mm, in view, while its elbow lay 9-16 cm beyond the upper arm's length from where the trunk's fit put the
+#: shoulder, and stayed unlabeled 12 frames: the shoulder blade lifts the raised arm, and a calibration on a
+#: seed that bent no elbow misplaces the joint), a triangle matched within TIGHT_PAIR_TOL_M a side and
+#: fitting within TIGHT_THREE_RMS_M, its joint within TIGHT_BONE_TOL_M of the bone's length and nearer its
+#: own anchor than the mirror limb's, with no disagreeing placement in that reach
+TIGHT_PAIR_TOL_M = 0.004
+TIGHT_THREE_RMS_M = 0.0025
+TIGHT_BONE_TOL_M = 0.2
 #: With no skeleton (`_search_rigid_groups`), markers whose mutual distances varied less than GROUP_SD_M
 #: move as one cluster; its triangle is matched to points at its distances within GROUP_PAIR_TOL_M + 3
 #: sigma, its markers are placed on points within GROUP_INLIER_M, and it is taken when GROUP_MIN_PLACED
@@ -123,7 +132,7 @@ def _search_segments(model: SubjectModel, st: TrackState, points: np.ndarray, ca
             # the joint could not pin it (its parent moved unseen too, so the joint is where the fit left
             # it: a serving arm's forearm stayed unfound for 0.7 s): its layout alone
             assignment = _search_free_segment(model, pw, points, pool, los, k, observed)
-        if assignment and _rival_fits(model, pw, points, assignment, k, searched):
+        if assignment and _rival_fits(model, pw, points, assignment, k, searched, lab, cur):
             assignment = None
         if assignment and len(lab) == 0 and k > 0 and observed[PARENTS[k]] and _mirrored(model, assignment, points, pw[k]):
             assignment = None
@@ -315,7 +324,7 @@ def _joint_residual(off: np.ndarray, o: np.ndarray, pts: np.ndarray) -> tuple[fl
 
 
 def _rival_fits(model: SubjectModel, pw: np.ndarray, points: np.ndarray, assignment: dict[int, int], k: int,
-                segments: np.ndarray) -> bool:
+                segments: np.ndarray, lab: np.ndarray | None = None, cur: np.ndarray | None = None) -> bool:
     """Whether the points a search gave segment k fit another segment searched for (`segments`) about as
     well: its markers' layout as well, and its joint not clearly farther. The two hands, hidden together,
     are each other's mirror image; three markers alone cannot tell them apart, and when neither elbow is
@@ -324,7 +333,14 @@ def _rival_fits(model: SubjectModel, pw: np.ndarray, points: np.ndarray, assignm
     off, seg = model.marker_offsets_m, model.marker_segment
     mk = np.array(list(assignment))
     pts = points[list(assignment.values())]
-    rms, joint = _joint_residual(off[mk], pw[k], pts)
+    if lab is not None and len(lab) and len(mk) == 2:
+        # two points alone leave the segment free to turn about them, and its joint anywhere on a circle:
+        # its labeled markers (`lab`, at `cur`) pin it (a serving forearm's labeled marker and the wrist and
+        # finger points found around the elbow fitted it at 1 mm, the joint 34 cm off when turned about the
+        # pair alone: the other forearm's pair was a rival, and the hand stayed unlabeled for 20 frames)
+        rms, joint = _joint_residual(off[np.concatenate([mk, lab])], pw[k], np.vstack([pts, cur[lab]]))
+    else:
+        rms, joint = _joint_residual(off[mk], pw[k], pts)
     for k2 in segments:
         idx = np.flatnonzero(seg == k2)
         if k2 == k or len(idx) < len(mk):
@@ -404,7 +420,10 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
     one fits about as well with half its support or more. Three markers are a triangle, which fits its
     mirror image (the other hand's) by a turn: only the bone's length tells the two apart, and a chain's
     reach is too loose for that (a foot's three were once matched to two of them and the shank's marker:
-    HDM05 at L3, T-pose mode)."""
+    HDM05 at L3, T-pose mode). Where the bone's length misses (a raised arm's shoulder lifted, a joint the
+    calibration misplaced), a triangle that fits its layout tightly is taken within a wider reach, if it
+    hangs nearer its own anchor than the mirror limb's and no disagreeing placement fits about as well
+    (TIGHT_BONE_TOL_M)."""
     parent = PARENTS[k]
     if model.layout_rms_m is None or len(model.layout_rms_m) != model.n_markers or model.layout_offsets_m is None:
         return None  # layouts unmeasured (a calibration saved before they were kept)
@@ -423,9 +442,13 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
         return None
     anchor, reach = pw[top], sum(bones)
     joint = model.layout_joints_m[k]  # (where the layout is placed, the model's joint: see layout_joints_m)
+    mirror = MIRRORS[top]
+    mirror_anchor = pw[mirror] if mirror != top else None
     # (the joint lies within its bone's tolerance of the reach, and each marker within its offset of the joint)
-    near = pool[_norm(points[pool] - anchor) < reach + SEARCH_BONE_TOL_M + _norm(off[los]).max()]
-    if len(near) < 3:
+    span = _norm(points[pool] - anchor)
+    near = pool[span < reach + SEARCH_BONE_TOL_M + _norm(off[los]).max()]
+    wide = pool[span < reach + TIGHT_BONE_TOL_M + _norm(off[los]).max()] if one_bone else near
+    if len(wide) < 3:
         return None
 
     def area(c):
@@ -433,17 +456,20 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
 
     triangles = sorted(itertools.combinations(los, 3), key=area, reverse=True)
 
-    def placements(tris, tol: float) -> list:
+    def placements(tris, tol: float, pair_m: float = SEARCH_PAIR_TOL_M, bone_m: float = SEARCH_BONE_TOL_M,
+                   cand: np.ndarray = near) -> list:
         """(n placed, RMS of the triangle's fit, {marker: point}), most placed first, from the triangles
-        `tris` matched within `tol` times the search's tolerances (side lengths, corner residuals, the joint
-        off its bone's length)."""
+        `tris` matched among points `cand` within `tol` times the search's tolerances (side lengths
+        `pair_m`, corner residuals, the joint off its bone's length `bone_m`)."""
         scored, seen = [], set()
         for tri in tris:
-            for R, t, res in _triangle_matches(off[list(tri)], points[near], (tol * SEARCH_PAIR_TOL_M,) * 3):
+            for R, t, res in _triangle_matches(off[list(tri)], points[cand], (tol * pair_m,) * 3):
                 d = _norm(R @ joint + t - anchor)  # one bone: at its length; a chain: within its reach
-                if res.max() > tol * 2 * SEARCH_INLIER_M or (abs(d - reach) if one_bone else d - reach) > tol * SEARCH_BONE_TOL_M:
+                if res.max() > tol * 2 * SEARCH_INLIER_M or (abs(d - reach) if one_bone else d - reach) > tol * bone_m:
                     continue
-                assignment = _placed(off, los, R, t, points, near)
+                if bone_m > SEARCH_BONE_TOL_M and mirror_anchor is not None and _norm(R @ joint + t - mirror_anchor) < d:
+                    continue  # (a triangle fits its mirror image: the other limb's, nearer its own anchor)
+                assignment = _placed(off, los, R, t, points, cand)
                 key = tuple(sorted(assignment.items()))
                 if len(set(assignment.values())) < len(assignment) or key in seen:
                     continue  # (another triangle of the same placement)
@@ -457,9 +483,17 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
         return _unambiguous(scored, 1, 4)
     if not one_bone:
         return None
-    scored = placements(triangles, 1.0)
+    scored = placements(triangles, 1.0) if len(near) >= 3 else []
     if not scored or scored[0][1] > SEARCH_THREE_RMS_M:
-        return None
+        # the bone's length missed: a tight triangle alone in reach (`TIGHT_BONE_TOL_M`)
+        tight = placements(triangles, 1.0, TIGHT_PAIR_TOL_M, TIGHT_BONE_TOL_M, wide)
+        if not tight or tight[0][1] > TIGHT_THREE_RMS_M:
+            return None
+        rivals = placements(triangles, RIVAL_TOL_FACTOR, SEARCH_PAIR_TOL_M, TIGHT_BONE_TOL_M, wide)
+        assignment, support = _consensus(tight[0][2], rivals)
+        if any(r2 < 1.5 * tight[0][1] + 0.003 and not _agrees(assignment, a2) for _, r2, a2 in rivals):
+            return None
+        return assignment
     # Each triangle placed alone: the placement is the best one's consensus, every placement agreeing with
     # it merged in (a forearm of five markers twisting under pronation fits no rigid layout within the
     # inlier gate, but four of its triangles each placed three of them, consistently: two players at L3,

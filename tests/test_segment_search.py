@@ -146,13 +146,17 @@ def test_a_forearm_found_by_its_layout_is_hung_from_the_elbow_refinement_moved()
     assert {i: p for i, p in found.items() if i in forearm} == {int(i): int(i) for i in forearm}
 
 
-@pytest.mark.parametrize("raised_m, found", [(0.065, True), (0.12, False)])
-def test_a_forearm_found_by_its_layout_may_hang_from_a_shoulder_the_shoulder_blade_raised(raised_m, found):
-    """The arm swung unseen and the shoulder blade carried it 6.5 cm up along itself (an arm raised to
-    serve); the upper arm's markers are labeled again, the forearm's not. The fit holds the shoulder where
-    the trunk puts it and the elbow where it was, so the elbow the forearm's layout places lies 6.5 cm
-    beyond the upper arm's length from that shoulder, and is taken (SEARCH_BONE_TOL_M; two players at L3,
-    a serving forearm unlabeled in view for 0.4 s); 12 cm beyond, it is no arm of this shoulder's."""
+@pytest.mark.parametrize("raised_m, skin_m, found", [(0.065, 0.004, True), (0.12, 0.0, True), (0.12, 0.004, False),
+                                                     (0.25, 0.0, False)])
+def test_a_forearm_found_by_its_layout_may_hang_from_a_shoulder_the_shoulder_blade_raised(raised_m, skin_m, found):
+    """The arm swung unseen and the shoulder blade carried it up along itself (an arm raised to serve); the
+    upper arm's markers are labeled again, the forearm's not. The fit holds the shoulder where the trunk
+    puts it and the elbow where it was, so the elbow the forearm's layout places lies beyond the upper
+    arm's length from that shoulder. 6.5 cm beyond, it is taken (SEARCH_BONE_TOL_M; two players at L3, a
+    serving forearm unlabeled in view for 0.4 s), its markers a few millimetres off their layout; 12 cm
+    beyond, only by a triangle that fits the layout tightly, alone in reach (TIGHT_BONE_TOL_M: a serving
+    forearm's wrist pair and finger fitted theirs to 1 mm, 9-16 cm beyond, two players at L2); 25 cm
+    beyond, it is no arm of this shoulder's."""
     from protocol.skeleton import SEGMENTS
 
     perf, model, st, now, arm, forearm = _arm_swung_unseen()
@@ -161,12 +165,37 @@ def test_a_forearm_found_by_its_layout_may_hang_from_a_shoulder_the_shoulder_bla
     along = (elbow - shoulder) / np.linalg.norm(elbow - shoulder)
     points = now.copy()
     points[arm] += raised_m * along
+    # skin: each forearm marker off its layout by skin_m, each its own way (every triangle misfits)
+    points[forearm] += skin_m * np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-0.6, -0.6, -0.5]])
     lost = np.zeros(len(points), bool)
     lost[forearm] = True
     cur = np.where(~lost[:, None], points, np.nan)
 
     got = segment_search._search_segments(model, st, points, lost.copy(), ~lost, cur, lost)
     assert got == ({int(i): int(i) for i in forearm} if found else {})
+
+
+def test_a_tight_triangle_beyond_the_bone_is_refused_where_its_elbow_is_nearer_the_other_shoulder():
+    """A forearm's triangle fits its mirror image (the other hand's) by a turn, so one found beyond its
+    bone's length (`TIGHT_BONE_TOL_M`) must place its elbow nearer its own shoulder than the other one:
+    12 cm beyond the upper arm's length from the right shoulder, out to the side, the right forearm is
+    found; as far across the chest, past the left shoulder, it is not."""
+    from protocol.skeleton import SEGMENTS
+
+    perf, model, st, now, arm, forearm = _arm_swung_unseen()
+    pw = track_state._joints_m(model, st)
+    right, left = pw[SEGMENTS.index("r_upperarm")], pw[SEGMENTS.index("l_upperarm")]
+    reach = np.linalg.norm(model.joint_offsets_m[SEGMENTS.index("r_forearm")])
+    _, elbow = track_state.rigid_motion(model.marker_offsets_m[forearm], now[forearm])
+    across = (left - right) / np.linalg.norm(left - right)
+    lost = np.zeros(len(now), bool)
+    lost[forearm] = True
+    for way, found in ((-across, True), (across, False)):
+        points = now.copy()
+        points[forearm] += right + (reach + 0.12) * way - elbow
+        cur = np.where(~arm[:, None], points, np.nan)
+        got = segment_search._search_segments(model, st, points, lost.copy(), ~arm, cur, lost)
+        assert got == ({int(i): int(i) for i in forearm} if found else {})
 
 
 def test_the_models_joint_in_a_layout_refinement_reshaped_is_where_the_rigid_motion_between_them_puts_it():
@@ -445,6 +474,33 @@ def test_points_that_fit_the_mirror_segment_as_well_are_not_given_to_either():
     assert not segment_search._rival_fits(model, pw, points, left_gets, 5, np.array([5]))
     pw[7] = elbow_r + [0.0, 0.3, 0.0]  # the right elbow held 30 cm away: it cannot be the right forearm
     assert not segment_search._rival_fits(model, pw, points, left_gets, 5, np.array([5, 7]))
+
+
+def test_two_points_found_beside_a_labeled_marker_are_judged_with_it_against_a_rival_segment():
+    """Two points alone leave a segment free to turn about them, its joint anywhere on a circle: the right
+    forearm's wrist pair, found around the elbow beside its labeled forearm marker, fitted the other
+    forearm's pair as well, and that elbow was "about as near" as the one the pair alone placed, 6 cm off
+    (two players at L2: the serving hand stayed unlabeled 20 frames). With the labeled marker the right
+    forearm's elbow is where the fit holds it, 1 cm off, and the left's, 7 cm away, is no rival; where the
+    left elbow holds the points as well as the right does, it still is."""
+    seg = np.array([5, 5, 5, 5, 7, 7, 7, 7])
+    left = np.array([[0.0, 0.0, -0.25], [0.03, 0.0, -0.26], [-0.03, 0.0, -0.26], [0.0, 0.02, -0.33]])
+    off = np.vstack([left, left * [1.0, -1.0, 1.0]])  # the right is the left mirrored
+    model = track_state.SubjectModel("P", tuple("abcdefgh"), seg, off, np.zeros((14, 3)), True)
+    R = Rotation.from_rotvec([0.3, -0.5, 1.2]).as_matrix()
+    elbow_r = np.array([0.2, 0.4, 1.3])
+    right = off[4:8] @ R.T + elbow_r
+    points = right[[1, 2]]  # the pair found; marker 4 (the first of the right's) labeled
+    cur = np.full((8, 3), np.nan)
+    cur[4] = right[0]
+    pw = np.zeros((14, 3))
+    pw[7] = elbow_r + [0.0, 0.0, 0.01]
+    pw[5] = elbow_r + [0.0, 0.05, 0.05]
+    both = np.array([5, 7])
+    assert segment_search._rival_fits(model, pw, points, {5: 0, 6: 1}, 7, both)  # the pair alone
+    assert not segment_search._rival_fits(model, pw, points, {5: 0, 6: 1}, 7, both, np.array([4]), cur)
+    pw[5] = elbow_r
+    assert segment_search._rival_fits(model, pw, points, {5: 0, 6: 1}, 7, both, np.array([4]), cur)
 
 
 def _limb(angle: float, layout: np.ndarray, pivot: np.ndarray) -> np.ndarray:
