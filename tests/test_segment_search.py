@@ -453,17 +453,22 @@ def test_a_forearm_swung_out_of_reach_of_where_the_fit_left_its_elbow_is_found_b
     assert found == {int(i): int(i) for i in np.flatnonzero(on_forearm)}
 
 
+def _mirrored_forearms():
+    """A model of two forearms of four markers each (segments 5 and 7), the right the left mirrored; a turn
+    R and an elbow position for the right: (model, offsets, R, elbow)."""
+    seg = np.array([5, 5, 5, 5, 7, 7, 7, 7])
+    left = np.array([[0.0, 0.0, -0.25], [0.03, 0.0, -0.26], [-0.03, 0.0, -0.26], [0.0, 0.02, -0.33]])
+    off = np.vstack([left, left * [1.0, -1.0, 1.0]])
+    model = track_state.SubjectModel("P", tuple("abcdefgh"), seg, off, np.zeros((14, 3)), True)
+    return model, off, Rotation.from_rotvec([0.3, -0.5, 1.2]).as_matrix(), np.array([0.2, 0.4, 1.3])
+
+
 def test_points_that_fit_the_mirror_segment_as_well_are_not_given_to_either():
     """Left and right forearms carry mirror-image marker layouts, and three markers of one fit three of
     the other's by a rotation. Points the left forearm's search took (three of the right hand's) stay
     unassigned while the right forearm, searched for too, fits them as well with its elbow about as near;
     they are the left's when the right is not searched for, or when its elbow is far from them."""
-    seg = np.array([5, 5, 5, 5, 7, 7, 7, 7])
-    left = np.array([[0.0, 0.0, -0.25], [0.03, 0.0, -0.26], [-0.03, 0.0, -0.26], [0.0, 0.02, -0.33]])
-    off = np.vstack([left, left * [1.0, -1.0, 1.0]])  # the right is the left mirrored
-    model = track_state.SubjectModel("P", tuple("abcdefgh"), seg, off, np.zeros((14, 3)), True)
-    R = Rotation.from_rotvec([0.3, -0.5, 1.2]).as_matrix()
-    elbow_r = np.array([0.2, 0.4, 1.3])
+    model, off, R, elbow_r = _mirrored_forearms()
     points = off[4:7] @ R.T + elbow_r  # three of the right forearm's markers
     pw = np.zeros((14, 3))  # both elbows stale, a few centimetres apart
     pw[7] = elbow_r + [0.0, 0.0, 0.03]
@@ -483,12 +488,7 @@ def test_two_points_found_beside_a_labeled_marker_are_judged_with_it_against_a_r
     (two players at L2: the serving hand stayed unlabeled 20 frames). With the labeled marker the right
     forearm's elbow is where the fit holds it, 1 cm off, and the left's, 7 cm away, is no rival; where the
     left elbow holds the points as well as the right does, it still is."""
-    seg = np.array([5, 5, 5, 5, 7, 7, 7, 7])
-    left = np.array([[0.0, 0.0, -0.25], [0.03, 0.0, -0.26], [-0.03, 0.0, -0.26], [0.0, 0.02, -0.33]])
-    off = np.vstack([left, left * [1.0, -1.0, 1.0]])  # the right is the left mirrored
-    model = track_state.SubjectModel("P", tuple("abcdefgh"), seg, off, np.zeros((14, 3)), True)
-    R = Rotation.from_rotvec([0.3, -0.5, 1.2]).as_matrix()
-    elbow_r = np.array([0.2, 0.4, 1.3])
+    model, off, R, elbow_r = _mirrored_forearms()
     right = off[4:8] @ R.T + elbow_r
     points = right[[1, 2]]  # the pair found; marker 4 (the first of the right's) labeled
     cur = np.full((8, 3), np.nan)
