@@ -9,7 +9,8 @@ Runs the adaptive engine in seeded mode on every labeled file x level x corrupti
 at its first 25 s, as the benchmark), in 2 processes: 8 files x L2/L3 x 18 seeds take ~5 min. Prints, per
 file and level, the mean and the worst accuracy, the mean precision and the skeleton solves' residual p90
 (the median and the worst of the runs: is the skeleton still on its markers?); with --compare, beside those
-of an earlier run's JSON, and every run that moved by 0.005 % or more; and, for files whose own labels
+of an earlier run's JSON, with the paired change (mean +- standard error of the per-run differences, runs
+up and down), and every run that moved by 0.005 % or more; and, for files whose own labels
 are wrong somewhere (`benchmarks.truth_errors`), the means with those spells left unscored. `--mode tpose`
 runs the files with a T-pose (`benchmarks.run.TPOSE_FILES`: HDM_mm, squat) with nothing given instead,
 scored from frame 0.
@@ -76,12 +77,25 @@ def _cells(rows: list[dict]) -> list[str]:
             f"{np.nanmedian(p90):.0f} / {np.nanmax(p90):.0f}" if np.isfinite(p90).any() else "–"]
 
 
+def _paired(rows: list[dict], old: dict) -> str:
+    """The accuracy change of `rows` against the same runs in `old` ({(file, level, seed): row}): mean
+    +- standard error of the per-run differences [points], and how many runs went up and down. A single
+    realization can swing by several points on a chaotic file (03_rolling: up to 7 either way), so a mean
+    over six seeds says little unless the error says so too."""
+    d = np.array([r["acc"] - old[k]["acc"] for r in rows if (k := (r["file"], r["level"], r["seed"])) in old])
+    if len(d) == 0:
+        return "–"
+    se = f" +- {d.std(ddof=1) / np.sqrt(len(d)):.3f}" if len(d) > 1 else ""
+    return f"{d.mean():+.3f}{se} ({np.count_nonzero(d > 0)} up, {np.count_nonzero(d < 0)} down)"
+
+
 def summary(rows: list[dict], before: list[dict] | None = None) -> list[str]:
-    """Markdown lines: per file and level, mean / worst accuracy and mean precision (beside `before`'s)."""
+    """Markdown lines: per file and level, mean / worst accuracy and mean precision (beside `before`'s, with
+    the paired change: `_paired`)."""
     old = {(r["file"], r["level"], r["seed"]): r for r in before or []}
     head = "accuracy mean / worst | precision mean | residual p90 median / worst [mm] |"
-    lines = ["| file | level | runs | " + head + (" before: " + head if before else ""),
-             "|---|---|---|---|---|---|" + ("---|---|---|" if before else "")]
+    lines = ["| file | level | runs | " + head + (" before: " + head + " accuracy change [points] |" if before else ""),
+             "|---|---|---|---|---|---|" + ("---|---|---|---|" if before else "")]
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
         groups.setdefault((r["file"], r["level"]), []).append(r)
@@ -89,13 +103,15 @@ def summary(rows: list[dict], before: list[dict] | None = None) -> list[str]:
         cells = _cells(rr)
         if before:
             cells += _cells([old[k] for k in ((r["file"], r["level"], r["seed"]) for r in rr) if k in old])
+            cells.append(_paired(rr, old))
         lines.append(f"| {file} | {level} | {len(rr)} | " + " | ".join(cells) + " |")
     for level in sorted({r["level"] for r in rows}):
         rr = [r for r in rows if r["level"] == level]
         line = f"\n{level}: {len(rr)} runs, accuracy mean {sum(r['acc'] for r in rr) / len(rr):.3f} %, precision mean {sum(r['prec'] for r in rr) / len(rr):.3f} %"
         oo = [old[(r["file"], r["level"], r["seed"])] for r in rr if (r["file"], r["level"], r["seed"]) in old]
         if oo:
-            line += f" (before, same runs: {sum(r['acc'] for r in oo) / len(oo):.3f} / {sum(r['prec'] for r in oo) / len(oo):.3f} %)"
+            line += (f" (before, same runs: {sum(r['acc'] for r in oo) / len(oo):.3f} / {sum(r['prec'] for r in oo) / len(oo):.3f} %;"
+                     f" change {_paired(rr, old)})")
         lines.append(line)
     out = [r for r in rows if "acc_out" in r]
     if out:

@@ -16,8 +16,11 @@ def test_summary_gives_mean_and_worst_per_file_and_level_and_what_moved():
     before = [_row("a.c3d", "L3", 0, 90.0, fit_p90_mm=500.0), _row("a.c3d", "L3", 1, 98.0), _row("b.c3d", "L3", 0, 99.0)]
     after = [_row("a.c3d", "L3", 0, 96.0, fit_p90_mm=24.0), _row("a.c3d", "L3", 1, 98.0), _row("b.c3d", "L3", 0, 99.0, 99.5)]
     text = "\n".join(summary(after, before))
-    assert "| a.c3d | L3 | 2 | 97.00 / 96.00 | 100.00 | 22 / 24 | 94.00 / 90.00 | 100.00 | 260 / 500 |" in text
-    assert "L3: 3 runs, accuracy mean 97.667 %, precision mean 99.833 % (before, same runs: 95.667 / 100.000 %)" in text
+    # the paired change: a's runs moved by +6 and 0 points (mean 3, standard error 3)
+    assert "| a.c3d | L3 | 2 | 97.00 / 96.00 | 100.00 | 22 / 24 | 94.00 / 90.00 | 100.00 | 260 / 500 | +3.000 +- 3.000 (1 up, 0 down) |" in text
+    assert "| b.c3d | L3 | 1 | 99.00 / 99.00 | 99.50 | 20 / 20 | 99.00 / 99.00 | 100.00 | 20 / 20 | +0.000 (0 up, 0 down) |" in text
+    assert ("L3: 3 runs, accuracy mean 97.667 %, precision mean 99.833 % (before, same runs: 95.667 / 100.000 %;"
+            " change +2.000 +- 2.000 (1 up, 0 down))") in text
     assert "runs that moved: 2" in text
     assert "- a.c3d L3 seed 0: accuracy 90.000 -> 96.000, precision 100.000 -> 100.000" in text
     assert "seed 1" not in text  # unchanged runs are not listed
