@@ -462,19 +462,21 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
 
     triangles = sorted(itertools.combinations(los, 3), key=area, reverse=True)
 
-    def placements(tris, tol: float, pair_m: float = SEARCH_PAIR_TOL_M, bone_m: float = SEARCH_BONE_TOL_M,
-                   cand: np.ndarray = near) -> list:
+    def placements(tris, tol: float, pair_m: float = SEARCH_PAIR_TOL_M, beyond: bool = False) -> list:
         """(n placed, RMS of the triangle's fit, {marker: point}), most placed first, from the triangles
-        `tris` matched among points `cand` within `tol` times the search's tolerances (side lengths
-        `pair_m`, corner residuals, the joint off its bone's length `bone_m`)."""
+        `tris` matched within `tol` times the search's tolerances (side lengths `pair_m`, corner residuals,
+        the joint off its bone's length). `beyond`: the joint within TIGHT_BONE_TOL_M of the bone's length
+        instead of SEARCH_BONE_TOL_M, among the points in that reach, and nearer its own anchor than the
+        mirror limb's (a triangle fits its mirror image, the other limb's, by a turn)."""
+        bone_m, cand = (TIGHT_BONE_TOL_M, wide) if beyond else (SEARCH_BONE_TOL_M, near)
         scored, seen = [], set()
         for tri in tris:
             for R, t, res in _triangle_matches(off[list(tri)], points[cand], (tol * pair_m,) * 3):
                 d = _norm(R @ joint + t - anchor)  # one bone: at its length; a chain: within its reach
                 if res.max() > tol * 2 * SEARCH_INLIER_M or (abs(d - reach) if one_bone else d - reach) > tol * bone_m:
                     continue
-                if bone_m > SEARCH_BONE_TOL_M and mirror_anchor is not None and _norm(R @ joint + t - mirror_anchor) < d:
-                    continue  # (a triangle fits its mirror image: the other limb's, nearer its own anchor)
+                if beyond and mirror_anchor is not None and _norm(R @ joint + t - mirror_anchor) < d:
+                    continue
                 assignment = _placed(off, los, R, t, points, cand)
                 key = tuple(sorted(assignment.items()))
                 if len(set(assignment.values())) < len(assignment) or key in seen:
@@ -489,14 +491,14 @@ def _search_free_segment(model: SubjectModel, pw: np.ndarray, points: np.ndarray
         return _unambiguous(scored, 1, 4)
     if not one_bone:
         return None
-    scored = placements(triangles, 1.0) if len(near) >= 3 else []
+    scored = placements(triangles, 1.0)
     if not scored or scored[0][1] > SEARCH_THREE_RMS_M:
         # the bone's length missed: a tight triangle alone in reach (`TIGHT_BONE_TOL_M`)
-        tight = placements(triangles, 1.0, TIGHT_PAIR_TOL_M, TIGHT_BONE_TOL_M, wide)
+        tight = placements(triangles, 1.0, TIGHT_PAIR_TOL_M, beyond=True)
         if not tight or tight[0][1] > TIGHT_THREE_RMS_M:
             return None
-        rivals = placements(triangles, RIVAL_TOL_FACTOR, SEARCH_PAIR_TOL_M, TIGHT_BONE_TOL_M, wide)
-        assignment, support = _consensus(tight[0][2], rivals)
+        rivals = placements(triangles, RIVAL_TOL_FACTOR, beyond=True)
+        assignment, _ = _consensus(tight[0][2], rivals)
         if any(r2 < 1.5 * tight[0][1] + 0.003 and not _agrees(assignment, a2) for _, r2, a2 in rivals):
             return None
         return assignment
