@@ -52,6 +52,32 @@ def test_reacquisition_gate_is_capped_however_loose_the_partners(monkeypatch, ha
         assert gates_seen[-1][3] > 5 * CONFIG.reacquire_gate_m
 
 
+@pytest.mark.parametrize("rate_hz", [50.0, 120.0])
+def test_the_tracking_gate_widens_with_the_frame_interval(monkeypatch, rate_hz):
+    """A marker standing still is tracked within nnt_gate_m plus the way an acceleration the prediction
+    does not model carries it in one frame interval (NNT_UNMODELED_ACC_M_S2): 5 mm at 50 Hz, where serving
+    wrists outran the 30 mm gate, under 1 mm at 120 Hz."""
+    body = np.random.default_rng(2).uniform(-0.15, 0.15, (6, 3)) + [0, 0, 1]
+    model, st = seeded_state(np.stack([body] * 5), 5)
+    gates_seen = []
+    assign = tracker._assign
+
+    def spy(pred, gates, points, cand):
+        gates_seen.append(gates.copy())
+        return assign(pred, gates, points, cand)
+
+    monkeypatch.setattr(tracker, "_assign", spy)
+    dt = 1.0 / rate_hz
+    t0 = st.last_t_ns
+    for k in range(1, 4):
+        first = len(gates_seen)  # (the step's first assignment is the tracking one)
+        st, res = tracker.step(model, st, body, np.ones(len(body), bool), t0 + int(round(k * dt * 1e9)), CONFIG)
+    assert (res.point_index >= 0).all()
+    widening = 0.5 * tracker.NNT_UNMODELED_ACC_M_S2 * dt**2
+    np.testing.assert_allclose(gates_seen[first], CONFIG.nnt_gate_m + widening, atol=1e-9)
+    assert (widening > 0.004) if rate_hz == 50.0 else (widening < 0.001)
+
+
 def test_relocate_finds_a_lost_subject_moved_and_turned():
     """A lost subject's last marker cloud is registered onto the unclaimed points: found 1 m away and
     turned 100 degrees, among ghosts; not found where nothing like it is."""
