@@ -17,6 +17,20 @@ from service import layouts, partners, track_state, tracker
 from tests.tracker_fixtures import CONFIG, RATE_HZ, run_tracker, seeded_state, t_ns
 
 
+def _spy_on_gates(monkeypatch) -> list:
+    """The gates of every `tracker._assign` call from now on (each step's first is the tracking one), in
+    the list returned."""
+    gates_seen = []
+    assign = tracker._assign
+
+    def spy(pred, gates, points, cand):
+        gates_seen.append(gates.copy())
+        return assign(pred, gates, points, cand)
+
+    monkeypatch.setattr(tracker, "_assign", spy)
+    return gates_seen
+
+
 @pytest.mark.parametrize("has_skeleton", [True, False])
 def test_reacquisition_gate_is_capped_however_loose_the_partners(monkeypatch, has_skeleton):
     """A hidden marker whose partners misfit a lot (a bending limb) gets a wider gate; once the subject has
@@ -28,14 +42,7 @@ def test_reacquisition_gate_is_capped_however_loose_the_partners(monkeypatch, ha
     model, st = seeded_state(history, 40)
     model = dataclasses.replace(model, has_skeleton=has_skeleton)  # no solver: no fit, partners only
     partners._update_partners(st)
-    gates_seen = []
-    assign = tracker._assign
-
-    def spy(pred, gates, points, cand):
-        gates_seen.append(gates.copy())
-        return assign(pred, gates, points, cand)
-
-    monkeypatch.setattr(tracker, "_assign", spy)
+    gates_seen = _spy_on_gates(monkeypatch)
     drift = rng.normal(0, 0.0015, body.shape)  # per frame: the body bends out of shape, 8 cm in 60 frames
     for k in range(1, 61):
         now = history[-1] + k * drift
@@ -59,14 +66,7 @@ def test_the_tracking_gate_widens_with_the_frame_interval(monkeypatch, rate_hz):
     wrists outran the 30 mm gate, under 1 mm at 120 Hz."""
     body = np.random.default_rng(2).uniform(-0.15, 0.15, (6, 3)) + [0, 0, 1]
     model, st = seeded_state(np.stack([body] * 5), 5)
-    gates_seen = []
-    assign = tracker._assign
-
-    def spy(pred, gates, points, cand):
-        gates_seen.append(gates.copy())
-        return assign(pred, gates, points, cand)
-
-    monkeypatch.setattr(tracker, "_assign", spy)
+    gates_seen = _spy_on_gates(monkeypatch)
     dt = 1.0 / rate_hz
     t0 = st.last_t_ns
     for k in range(1, 4):
