@@ -35,7 +35,9 @@ class EngineConfig:
     """... and at most this long [s]: the paper's 10 frames at 100 Hz, 5 at 50 Hz (a stale pose is a poor
     start for the solve and a poor predictor on a fast limb)."""
     nnt_gate_m: float = 0.03
-    """Gate [m] between a tracked marker's predicted position (velocity, acceleration) and a point."""
+    """Gate [m] between a tracked marker's predicted position (velocity, acceleration) and a point; the
+    tracker widens it with the marker's step and with the frame interval (`tracker.NNT_UNMODELED_ACC_M_S2`:
+    5 mm more at 50 Hz, under 1 mm at 120 Hz)."""
     reacquire_gate_m: float = 0.045
     """Gate [m] between a skeleton-predicted (occluded) marker and a point for the Hungarian assignment."""
     rigid_check_m: float = 0.025
