@@ -7,6 +7,7 @@ from recordings.corruption import (
     DEFAULT_SUBJECT,
     GHOST_LIFETIME_MEAN_S,
     LEVELS,
+    STRESS_LEVELS,
     CorruptedSequence,
     cluster_dropouts,
     corrupt,
@@ -205,5 +206,22 @@ def test_deterministic_per_seed():
 
 
 def test_unknown_level_names_the_valid_ones():
-    with pytest.raises(ValueError, match="L0, L1, L2, L3"):
+    with pytest.raises(ValueError, match="L0, L1, L2, L3, L2-lasting-ghosts"):
         corrupt(synthetic(10), "L9", 0)
+
+
+@pytest.mark.parametrize("name", sorted(STRESS_LEVELS))
+def test_a_stress_level_is_l2_with_one_thing_harsher(name):
+    harsher = {f for f, v in vars(STRESS_LEVELS[name]).items() if v != vars(LEVELS["L2"])[f]}
+    assert len(harsher) == 1 or harsher == {"near_ghosts_per_s", "far_ghost_fraction"}, harsher
+    for field in harsher:
+        assert getattr(STRESS_LEVELS[name], field) > getattr(LEVELS["L2"], field)
+
+
+def test_lasting_ghosts_live_their_stated_time():
+    rec = synthetic(int(RATE_HZ * 120), n_markers=10)
+    lifetime = STRESS_LEVELS["L2-lasting-ghosts"].ghost_lifetime_s
+    seq = corrupt(rec, "L2-lasting-ghosts", seed=6)
+    per_frame = np.mean([np.count_nonzero(t == -1) for t in seq.truth])
+    # 15 births/s x ~0.5 s alive (+ half a frame of rounding), plus a far ghost in 2 % of frames: 6x L2's
+    assert per_frame == pytest.approx(15 * (lifetime + 0.5 / RATE_HZ) + 0.02, rel=0.15)
