@@ -296,3 +296,13 @@ def test_cli_no_daemon_exits_1(tmp_path):
                   f"tcp://127.0.0.1:{free_port()}", "--wait", "1.5", "--quiet", timeout=60)
     assert result.returncode == 1
     assert "no daemon answered ready" in result.stderr
+
+
+def test_a_stress_level_corrupts_the_synthetic_performer_harder_than_l2():
+    from clients.replay import load_sequence
+
+    l2 = load_sequence(None, level="L2", seed=3, rate_hz=120.0, duration_s=10.0)
+    lasting = load_sequence(None, level="L2-lasting-ghosts", seed=3, rate_hz=120.0, duration_s=10.0)
+    assert lasting.level == "L2-lasting-ghosts"
+    ghosts = [np.mean([np.count_nonzero(t < 0) for t in seq.truth if t is not None]) for seq in (l2, lasting)]
+    assert ghosts[1] > 3 * ghosts[0]  # ghosts living 0.5 s instead of 0.08 s: about six times as many at a time
