@@ -38,7 +38,7 @@ import numpy as np
 from benchmarks.run import (DEFAULT_DATA, FULL_MAX_S, UsageError, corrupted, drive, engine_step, init_worker,
                             labeled_files, plan, select_files)
 from benchmarks.skeleton import parse_seeds
-from recordings.corruption import LEVELS, STRESS_LEVELS
+from recordings.corruption import ALL_LEVELS
 
 #: a marker counts as lost while in view once it has been in view this many frames running
 SETTLE_FRAMES = 10
@@ -277,7 +277,7 @@ def _run_seeds(data_dir: str, file: str, level: str, max_frames, seeds: list[int
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python3 -m benchmarks.losses", description=__doc__.split("\n\n")[0])
     parser.add_argument("file", help="a labeled recording: a glob or a text its path contains, matching one file")
-    parser.add_argument("--level", default="L3", choices=[*LEVELS, *STRESS_LEVELS],
+    parser.add_argument("--level", default="L3", choices=list(ALL_LEVELS),
                         help="corruption level (default L3); the L2-... ones are harsher than EVALUATION.md's")
     parser.add_argument("--seed", type=int, default=1, help="corruption seed (default 1, the benchmark's)")
     parser.add_argument("--seeds", help="several corruption seeds, e.g. 0-17 or 1,4,7: their losses summed")

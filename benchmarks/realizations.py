@@ -29,7 +29,7 @@ import numpy as np
 from benchmarks.run import (DEFAULT_DATA, FULL_MAX_S, TPOSE_FILES, UsageError, labeled_files, plan, run_jobs,
                             select_files)
 from benchmarks.skeleton import parse_seeds
-from recordings.corruption import LEVELS, STRESS_LEVELS
+from recordings.corruption import ALL_LEVELS
 
 #: files run by default: the labeled files where the engine tracks a skeleton from a standing seed (03_rolling's
 #: seed lies on the floor, where its calibration cannot see the joints and its runs swing by 20 points, which
@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python3 -m benchmarks.realizations", description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="directory of the recordings (default ../shared/data)")
     parser.add_argument("--files", nargs="+", metavar="PATTERN", help="only files whose path matches a glob or contains the text (default: the 8 dev files)")
-    parser.add_argument("--levels", nargs="+", default=["L2", "L3"], choices=[*LEVELS, *STRESS_LEVELS],
+    parser.add_argument("--levels", nargs="+", default=["L2", "L3"], choices=list(ALL_LEVELS),
                         help="corruption levels (default L2 L3); the L2-... ones are harsher than EVALUATION.md's "
                              "(recordings.corruption.STRESS_LEVELS)")
     parser.add_argument("--seeds", default="0-17", help="corruption seeds, e.g. 0-17 or 1,4,7 (default 0-17)")

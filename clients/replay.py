@@ -40,7 +40,7 @@ import numpy as np
 import zmq
 
 from protocol.messages import Frame, ProtocolError, decode_reply, encode, encode_request
-from recordings.corruption import LEVELS, STRESS_LEVELS, CorruptedSequence, corrupt
+from recordings.corruption import ALL_LEVELS, CorruptedSequence, corrupt
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:7701"
 DEFAULT_CONTROL = "tcp://127.0.0.1:7703"
@@ -365,7 +365,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-labels", action="store_true", help="send the file's labels with every frame")
     p.add_argument("--seed-seconds", type=_non_negative, default=0.0, metavar="S",
                    help="send labels only in the first S seconds (seeded mode)")
-    p.add_argument("--level", choices=[*LEVELS, *STRESS_LEVELS],
+    p.add_argument("--level", choices=list(ALL_LEVELS),
                    help="corruption (default: L0 for a file, L2 synthetic; the L2-... ones are harsher than EVALUATION.md's)")
     p.add_argument("--seed", type=int, default=0, help="random seed of corruption and performer (0)")
     p.add_argument("--duration", type=_positive, metavar="S", help="play only the first S seconds "

@@ -63,6 +63,8 @@ STRESS_LEVELS: dict[str, CorruptionLevel] = {
     # a marker and its 3 nearest neighbours vanish together once a second, for 0.3-1.5 s
     "L2-cluster-dropouts": dataclasses.replace(LEVELS["L2"], cluster_events_per_s=1.0),
 }
+#: every level `corrupt` takes, EVALUATION.md's first
+ALL_LEVELS: dict[str, CorruptionLevel] = {**LEVELS, **STRESS_LEVELS}
 
 # Occlusion gaps: lognormal, median 0.1 s, sigma 1 in log space, capped at 5 s (EVALUATION.md).
 GAP_MEDIAN_S = 0.1
@@ -122,9 +124,9 @@ def corrupt(recording: Recording, level: str, seed: int) -> CorruptedSequence:
     The file's own gaps are kept (NaN samples are simply absent from the cloud). Points whose label is no
     marker (`*N`, duplicate fragments such as `RBAC-1`) stay in the cloud as ghosts (truth -1).
     """
-    spec = LEVELS.get(level) or STRESS_LEVELS.get(level)
-    if spec is None:
-        raise ValueError(f"unknown corruption level {level!r}; valid levels: {', '.join([*LEVELS, *STRESS_LEVELS])}")
+    if level not in ALL_LEVELS:
+        raise ValueError(f"unknown corruption level {level!r}; valid levels: {', '.join(ALL_LEVELS)}")
+    spec = ALL_LEVELS[level]
     rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(7)]
     rng_occl, rng_cluster, rng_noise, rng_near, rng_far, rng_drop, rng_shuffle = rngs
 
