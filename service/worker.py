@@ -138,6 +138,14 @@ class Worker:
         with self._lock:
             left = list(pending.values())
             pending.clear()
+            # the next job starts a new child: its pipes are closed, but its exit may not be visible yet
+            # (poll() still None), and a job written to it then was never answered nor failed
+            if self._proc is proc:
+                self._proc = None
+        try:
+            proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
         for future in left:
             future.set_exception(WorkerError(f"the helper process exited (status {proc.poll()})"))
 
