@@ -10,6 +10,7 @@ more than one of them needs lives here.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
 
@@ -18,6 +19,7 @@ import numpy as np
 from protocol.skeleton import N_SEGMENTS, PARENTS
 from service import kernels
 
+STILL_FRAMES = 3  # frames of unlabeled points kept (`TrackState.free_history`)
 SHAPE_LAYOUT_TOL_M = 0.02  # only markers that kept their offset in their segment this well [m] take part in layout checks
 _PARENTS = np.asarray(PARENTS, np.int64)
 
@@ -130,6 +132,9 @@ class TrackState:
     reseat_votes: dict = dataclasses.field(default_factory=dict)
     # `_joints_m`: the segment origins of the pose (t_root_m, R_parent_segment, joint offsets) they were computed for
     joints_cache: tuple | None = None
+    # (t_ns, points (N, 3)) of the last STILL_FRAMES frames: the points the subject left unlabeled, newest
+    # last (`tracker._still_on_moving`)
+    free_history: collections.deque = dataclasses.field(default_factory=lambda: collections.deque(maxlen=STILL_FRAMES))
 
 
 def _gather(points: np.ndarray, point_index: np.ndarray) -> np.ndarray:

@@ -195,6 +195,56 @@ def test_ghosts_beside_markers_stay_unlabeled():
     assert np.all(got[240:] == np.arange(P.shape[1]))
 
 
+def _still_point_case(mates_speed, point_speed, own_mate_speed=None):
+    """`_still_on_moving` for marker 0 re-acquired onto a point that moved at `point_speed` [m/s] along x
+    over the last 3 frames, while its rigid partners (markers 1-4, on another segment) moved at
+    `mates_speed`; with `own_mate_speed`, marker 5 (on marker 0's own segment) is labeled, moving so."""
+    m = 6
+    segment = np.array([2, 1, 1, 1, 1, 2])
+    model = track_state.SubjectModel("P", tuple(f"M{i}" for i in range(m)), segment, np.zeros((m, 3)),
+                                     np.zeros((14, 3)), has_skeleton=True)
+    st = tracker.new_state(model, np.zeros((m, 3)), t_ns(3))
+    st.partners[0] = [1, 2, 3, 4, 5, -1, -1, -1]
+    st.vel_m_s[1:5] = [mates_speed, 0.0, 0.0]
+    st.vel_measured[:] = True
+    st.labeled[:] = [False, True, True, True, True, own_mate_speed is not None]
+    if own_mate_speed is not None:
+        st.vel_m_s[5] = [own_mate_speed, 0.0, 0.0]
+    st.skel_vel_m_s = np.zeros((m, 3))
+    point = np.array([0.5, 0.2, 1.0])
+    for f in range(3):  # the point on frames 0-2, and a far one beside it
+        st.free_history.append((t_ns(f), np.array([point - [point_speed * (3 - f) / RATE_HZ, 0, 0], [3.0, 3.0, 3.0]])))
+    return tracker._still_on_moving(model, st, np.array([0]), point[None], st.labeled, t_ns(3))[0]
+
+
+@pytest.mark.parametrize("mates_speed, point_speed, own_mate_speed, refused", [
+    (1.5, 0.0, 1.5, True),  # a reflection standing still beside a limb moving at 1.5 m/s
+    (1.5, 1.5, 1.5, False),  # the marker, moving with them
+    (0.1, 0.0, 0.1, False),  # the limb still too: nothing told
+    (1.5, 0.0, 0.0, False),  # a foot planted (a marker of its own still) while the shank turns over it
+    (1.5, 0.0, None, False),  # no marker of its own segment labeled: the partners alone may be across a joint
+])
+def test_a_point_standing_still_while_the_markers_partners_move_is_not_taken(mates_speed, point_speed,
+                                                                               own_mate_speed, refused):
+    assert _still_point_case(mates_speed, point_speed, own_mate_speed) == refused
+
+
+def test_the_tracker_keeps_the_points_it_left_unlabeled_for_the_stillness_check():
+    """Each step keeps the points no label took (and no other subject claimed), for STILL_FRAMES frames."""
+    P = perform(3, duration_s=0.5).recording.points_m
+    model, st = seeded_state(P, 40)
+    ghost = np.array([[2.0, 2.0, 1.0]])
+    for f in range(40, 45):
+        cloud = np.concatenate([P[f], ghost])
+        free = np.ones(len(cloud), bool)
+        free[0] = False  # claimed by another subject
+        st, _ = tracker.step(model, st, cloud, free, t_ns(f), CONFIG)
+    assert len(st.free_history) == track_state.STILL_FRAMES
+    t, kept = st.free_history[-1]
+    assert t == t_ns(44)
+    np.testing.assert_allclose(kept, ghost)
+
+
 def test_a_reacquired_marker_keeps_its_measured_velocity():
     """A velocity needs two observations: a marker found again where its (wrong) prediction was not gets
     the velocity it was last measured with, not (point - prediction) / dt, which turned prediction errors
