@@ -17,8 +17,8 @@
    with by more than `reject_residual_m` are withdrawn: a wrong label costs more than a missing one. On a
    segment none of whose markers is labeled (its pose is the fit's guess), markers are taken two or more at
    once, at the model's distances. Markers neither can place, unlabeled a few frames though in view (a hand
-   that moved while hidden, where the fit, with nothing to hold it, kept it), and the markers of a segment none of
-   whose markers is labeled (a foot back from an occlusion: its partners across the joint place it no
+   that moved while hidden, where the fit, with nothing to hold it, kept it), and the markers of a segment
+   none of whose markers is labeled (a foot back from an occlusion: its partners across the joint place it no
    better than the fit) are first looked for by registering their segment around its joint
    (`service.segment_search`), where a fit at most SEARCH_FIT_AGE_FRAMES old puts it (an older one: a
    solve is launched and the search waits a frame). A marker its partners place where no point is gets a
@@ -417,7 +417,7 @@ def _still_on_moving(model: SubjectModel, st: TrackState, rows: np.ndarray, pos:
     # the median of the partners' speeds (np.nanmedian costs ~50 us: sorted, the missing last)
     speeds = np.sort(np.where(ok, _norm(st.vel_m_s[idx]), np.inf), axis=1)
     r = np.arange(len(rows))
-    speed = np.where(n >= 2, 0.5 * (speeds[r, np.maximum(n - 1, 0) // 2] + speeds[r, np.minimum(n // 2, idx.shape[1] - 1)]), 0.0)
+    speed = np.where(n >= 2, 0.5 * (speeds[r, np.maximum(n - 1, 0) // 2] + speeds[r, n // 2]), 0.0)  # (n // 2 < K)
     own = np.full(len(rows), np.nan)  # the slowest labeled marker of its own segment (NaN: none)
     for i in np.flatnonzero(looks[0][2] & (n >= 2)):  # (a few re-acquisitions a frame at most: a loop)
         k = rows[i]
