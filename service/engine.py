@@ -126,20 +126,29 @@ RECALIBRATE_MIN_HEIGHT_M = 1.0
 RECALIBRATE_LYING_STILL_M, RECALIBRATE_LYING_STILL_S, RECALIBRATE_LYING_MIN_FRAMES = 0.02, 0.25, 24
 RECALIBRATE_CATCH_UP_SOLVES = 4  # solves of the latest frame from the current pose (then one a frame)
 CALIBRATE_CATCH_UP_SOLVES = 2  # solves that bring a calibration's pose up to the frame it takes effect
-#: A calibration (100-300 ms of work beside the frame loop) started at frame f takes effect this much stream
-#: time later (later behind a queue), counted in the subject's frames. In seconds, not frames: 60 frames,
-#: right at 120 Hz, left a 50 Hz serve without a skeleton for 1.2 s after the seed, and the serving arm's
-#: labels, tracked alone through the serve, came out permuted and stayed so (tennis, two players, at L2).
+#: A calibration started at frame f takes effect this much stream time later (later behind a queue,
+#: `_schedule`), counted in the subject's frames. In seconds, not frames: 60 frames, right at 120 Hz, left a
+#: 50 Hz serve without a skeleton for 1.2 s after the seed, and the serving arm's labels, tracked alone
+#: through the serve, came out permuted and stayed so (tennis, two players, at L2). Longer costs labels: at
+#: 0.9 s the dev suite lost 0.16 +- 0.07 points at L3 (-0.03 at L2; the basketball player -0.59, the two
+#: players -0.31 at L3); and a calibration queued behind another counted 0.8 s (its p99 below) cost the two
+#: players 0.05 (L2) and 0.10 points (L3). So a calibration that runs long on a loaded machine (p50 0.40 s,
+#: p90 0.54 s below) makes the frame that takes it wait.
 CALIBRATE_APPLY_S = 0.5
-#: The time one calibration or refinement takes in the helper process (`_queue_frames`). Measured: a
-#: 41-marker calibration from 240 frames took 0.31-0.39 s here (cmu/135_02); at 0.3 the frame that took
-#: the second and third subjects' calibrations waited for them, 70-250 ms (subject scan p99 for 2 / 3 / 4
-#: subjects 88 / 205 / 248 ms, against 7.5 / 10 / 19 ms at 0.45). Since calibration batches its Kabsch
-#: solves it takes 0.11-0.15 s (0.8 s in the helper beside a paced frame loop before, which made the
-#: first subject's frame wait 0.1-0.3 s). At 0.2 later subjects' calibrations land sooner: two players
-#: over 18 realizations L3 97.74 -> 97.83 %, L2 99.35 -> 99.37 %, but their worst residual p90 189 -> 318 mm
-#: and the scan's 8 subjects p99 84 -> 178 ms (4 sustained either way); not taken.
-HELPER_JOB_S = 0.45
+#: ... a recalibration (`recalibrated_model`) this much: taken 0.5 s after it started, as a calibration, the
+#: frame that took it waited 0.25-0.46 s for it (the subject scan's two subjects: p99 9.8 ms, max 71-507 ms)
+RECALIBRATE_APPLY_S = 1.2
+#: What one job of each kind may take in the helper process [s] (`_schedule`): a job is taken no sooner than
+#: the budgets of the jobs queued before it and its own from its start. Measured (the own time of each job,
+#: run inline in 2 benchmark processes on the 2 cores: the dev suite's 8 files and 03_rolling seeded, HDM_mm
+#: and squat in T-pose mode, L2/L3, seeds 0-2): calibrations p50 0.40, p99 0.70, max 0.87 s (80 jobs);
+#: refinements p50 0.25, max 0.81 s (222); recalibrations max 0.83 s (4), 0.75-0.96 s beside the daemon's
+#: paced frame loop (cmu/135_02: a calibration from the history and a kneeling one, and 2 x 40 judging
+#: solves); layout measurements max 37 ms (292). (Every job counted 0.45 s before; at 0.3 the frame that took
+#: the second and third subjects' calibrations waited 70-250 ms; at 0.2 the two players gained 0.09 points at
+#: L3, but the subject scan's 8 subjects went from 84 to 178 ms p99.)
+JOB_BUDGET_S = {"calibration": CALIBRATE_APPLY_S, "refinement": 0.8, "recalibration": RECALIBRATE_APPLY_S,
+                "layouts": 0.05}
 DISCOVER_FRAMES = 60  # frames an unexplained point must ride on an automatic subject to become a marker
 DISCOVER_REFIND_Z = 3.0  # ... unless it keeps a lost marker's distances to its partners this well (`_lost_marker_of`)
 #: (`_name_mirrors`) a free point this near a named marker's mirror image may be its twin (the tennis
@@ -166,8 +175,8 @@ class _Subject:
     pose_cache: tuple | None = None  # (R_parent_segment it was made from, quaternions, joint angles)
     next_refine_frame: int = 0
     refine_interval: int = 0  # frames between skeleton refinements (doubles each time)
-    refine_job: tuple | None = None  # (future, frame to apply it at)
-    calibration_job: tuple | None = None  # (future, frame to apply it at)
+    refine_job: tuple | None = None  # (future, frame to apply it at, kind): `_schedule`
+    calibration_job: tuple | None = None  # (future, frame to apply it at, kind)
     auto: bool = False  # created from a T-pose: its markers are its own, and it may discover more
     candidates: list = dataclasses.field(default_factory=list)  # unexplained point tracks: [last frame, positions]
     trial: _Trial | None = None  # a subject just found in a T-pose, until its window ends (`_Trial`)
@@ -179,7 +188,7 @@ class _Subject:
     next_recalibration_frame: int = 0
     recalibration_interval: int = 0  # frames between recalibrations (doubles each time)
     between_frame: int = -1  # the state's frame count `_between_frames` last ran at
-    layout_job: tuple | None = None  # (future, frame to apply it at): a T-pose subject's layouts remeasured
+    layout_job: tuple | None = None  # (future, frame to apply it at, kind): a T-pose subject's layouts remeasured
     next_layout_frame: int = 0
 
 
@@ -450,7 +459,7 @@ class Engine:
         refinement, and takes effect CALIBRATE_APPLY_S of stream time after it started (waiting for it then
         if need be): the frame loop does not stall on it, and `label` and the daemon give the same labels."""
         if s.calibration_job is not None:
-            future, apply_at = s.calibration_job
+            future, apply_at, _ = s.calibration_job
             if s.state.frames < apply_at:
                 return
             s.calibration_job = None
@@ -473,10 +482,9 @@ class Engine:
         if s.model.has_skeleton or s.state.frames < s.next_calibration_frame or len(s.history) < 12:
             return
         s.next_calibration_frame = s.state.frames + 120
-        delay = max(self._frames(s, CALIBRATE_APPLY_S), self._queue_frames(s))
-        job = self._worker().submit(history_calibration, self._solver_spec, np.stack(s.history),
-                                    calibration.mirror_index(s.model.markers))
-        s.calibration_job = (job, s.state.frames + delay)
+        s.calibration_job = self._schedule(s, "calibration", CALIBRATE_APPLY_S, history_calibration,
+                                           self._solver_spec, np.stack(s.history),
+                                           calibration.mirror_index(s.model.markers))
 
     def _maybe_refine(self, s: _Subject) -> None:
         """Re-align the skeleton to the recent labeled history when it fits the markers poorly (the
@@ -490,7 +498,7 @@ class Engine:
         on the skin does not keep the helper busy."""
         st = s.state
         if s.refine_job is not None:
-            future, apply_at = s.refine_job
+            future, apply_at, _ = s.refine_job
             if st.frames < apply_at:
                 return
             s.refine_job = None
@@ -510,11 +518,9 @@ class Engine:
             return
         s.refine_interval = min(2 * s.refine_interval, 20 * REFINE_EVERY_FRAMES) if s.refine_interval else REFINE_EVERY_FRAMES
         s.next_refine_frame = st.frames + s.refine_interval
-        hist = np.stack(s.history)
-        delay = max(self._frames(s, REFINE_APPLY_S), self._queue_frames(s))
-        job = self._worker().submit(functools.partial(refined_model, measure_joints=not s.auto), self._solver_spec, s.model,
-                                    hist, st.t_root_m.copy(), st.R_parent_segment.copy())
-        s.refine_job = (job, st.frames + delay)
+        s.refine_job = self._schedule(s, "refinement", REFINE_APPLY_S,
+                                      functools.partial(refined_model, measure_joints=not s.auto), self._solver_spec,
+                                      s.model, np.stack(s.history), st.t_root_m.copy(), st.R_parent_segment.copy())
 
     def _maybe_remeasure_layouts(self, s: _Subject) -> None:
         """A subject found in its T-pose had its segments' marker layouts measured on that pose, held still:
@@ -531,7 +537,7 @@ class Engine:
         model, st = s.model, s.state
         job = s.layout_job
         if job is not None:
-            if st.frames >= job[1]:  # (future, frame to apply it at)
+            if st.frames >= job[1]:
                 s.layout_job = None
                 bent = _result(job[0], "layout measurement")
                 was = model.layout_rms_m
@@ -541,11 +547,10 @@ class Engine:
         if not s.auto or not model.has_skeleton or model.layout_rms_m is None or st.frames < s.next_layout_frame:
             return
         s.next_layout_frame = st.frames + self._frames(s, LAYOUT_REMEASURE_S)
-        delay = max(self._frames(s, REFINE_APPLY_S), self._queue_frames(s))
         hist = np.stack(s.history)
         hist[:, ~np.isfinite(model.layout_rms_m)] = np.nan  # out of the check already (a marker a refinement moved)
-        job = self._worker().submit(calibration.layout_residuals, hist, model.marker_segment, model.layout_offsets_m)
-        s.layout_job = (job, st.frames + delay)
+        s.layout_job = self._schedule(s, "layouts", REFINE_APPLY_S, calibration.layout_residuals, hist,
+                                      model.marker_segment, model.layout_offsets_m)
 
     def _maybe_recalibrate(self, s: _Subject) -> bool:
         """Start a recalibration (`recalibrated_model`, in the helper process, in the refinement's job slot)
@@ -565,11 +570,9 @@ class Engine:
         s.recalibration_interval = (2 * s.recalibration_interval if s.recalibration_interval
                                     else self._frames(s, RECALIBRATE_EVERY_S))
         s.next_recalibration_frame = st.frames + s.recalibration_interval
-        delay = max(self._frames(s, CALIBRATE_APPLY_S), self._queue_frames(s))
-        job = self._worker().submit(recalibrated_model, self._solver_spec, s.model, np.stack(s.history),
-                                    calibration.mirror_index(s.model.markers), st.t_root_m.copy(),
-                                    st.R_parent_segment.copy())
-        s.refine_job = (job, st.frames + delay)
+        s.refine_job = self._schedule(s, "recalibration", RECALIBRATE_APPLY_S, recalibrated_model, self._solver_spec,
+                                      s.model, np.stack(s.history), calibration.mirror_index(s.model.markers),
+                                      st.t_root_m.copy(), st.R_parent_segment.copy())
         return True
 
     def _take_recalibration(self, s: _Subject, model, t_root: np.ndarray, R: np.ndarray) -> None:
@@ -597,17 +600,18 @@ class Engine:
         _, st.t_root_m, st.R_parent_segment = best
         st.fit_rms_m = best[0]
 
-    def _queue_frames(self, s: _Subject) -> int:
-        """Frames until a job submitted now for subject s is done, behind the jobs queued before it: the
-        helper process runs them one at a time, HELPER_JOB_S each, so with k queued it is done (k + 1) *
-        HELPER_JOB_S from now. A job takes effect no earlier, so the frame that takes it need not wait for
-        it (three subjects seeded together at 120 Hz stalled the frame loop for 0.25 s waiting on the third
-        calibration). Counted from the jobs' schedule, not their progress (a job done but not yet taken
-        still counts: the estimate errs late, never early), so `label` and the daemon still take each
-        result at the same frame."""
-        queued = sum((o.calibration_job is not None) + (o.refine_job is not None) + (o.layout_job is not None)
-                     for o in self._subjects.values())
-        return (queued + 1) * self._frames(s, HELPER_JOB_S)
+    def _schedule(self, s: _Subject, kind: str, apply_s: float, fn, *args) -> tuple:
+        """Submit a helper job of `kind` (JOB_BUDGET_S) for subject s: (future, frame to take it at, kind).
+        It is taken `apply_s` of stream time from now, or later behind a queue: the helper runs its jobs one
+        at a time, so it is done within the budgets of the jobs queued before it plus its own (three
+        subjects seeded together at 120 Hz, their calibrations all taken at one frame, stalled the frame
+        loop for 0.25 s waiting on the third). Counted from the jobs' schedule, not their progress (a job
+        done but not yet taken still counts: the estimate errs late, never early), so `label` and the
+        daemon take each result at the same frame."""
+        queued = sum(JOB_BUDGET_S[job[2]] for o in self._subjects.values()
+                     for job in (o.calibration_job, o.refine_job, o.layout_job) if job is not None)
+        delay = max(self._frames(s, apply_s), self._frames(s, queued + JOB_BUDGET_S[kind]))
+        return self._worker().submit(fn, *args), s.state.frames + delay, kind
 
     @staticmethod
     def _frames(s: _Subject, seconds: float) -> int:

@@ -535,13 +535,13 @@ def test_deferred_bookkeeping_gives_the_same_labels_and_poses():
     assert n_taken >= 2  # (both subjects' calibrations)
 
 
-def test_calibrations_queued_together_take_effect_one_job_apart():
+def test_calibrations_queued_together_take_effect_one_budget_apart():
     """Three subjects seeded together at 120 Hz ask the helper process for three calibrations at the same
-    frame. It runs them one at a time, HELPER_JOB_S each, so the k-th takes effect no earlier than k of
-    them from then (after CALIBRATE_APPLY_S at the earliest), instead of all at the same frame, where
-    the frame loop stalled waiting for the third (0.25 s in the benchmark's subject scan). The schedule is
-    counted in frames, so it is the same run after run, and every subject is tracked on its skeleton."""
-    from service.engine import CALIBRATE_APPLY_S, HELPER_JOB_S
+    frame. It runs them one at a time, each within its budget (JOB_BUDGET_S), so the k-th takes effect k
+    budgets from then, instead of all at the same frame, where the frame loop stalled waiting for the third
+    (0.25 s in the benchmark's subject scan). The schedule is counted in frames, so it is the same run after
+    run, and every subject is tracked on its skeleton."""
+    from service.engine import JOB_BUDGET_S
 
     rec, _ = multi_perform([8, 9, 10], spacing_m=2.5, duration_s=4.5)
     seq = corrupt(rec, "L0", 8)
@@ -554,9 +554,38 @@ def test_calibrations_queued_together_take_effect_one_job_apart():
             if name not in calibrated and engine.describe(name)["has_skeleton"]:
                 calibrated[name] = f
     assert len(calibrated) == 3, calibrated
-    job, apply = round(HELPER_JOB_S * seq.rate_hz), round(CALIBRATE_APPLY_S * seq.rate_hz)
+    job = JOB_BUDGET_S["calibration"] * seq.rate_hz
     first = min(calibrated.values())
-    assert sorted(calibrated.values()) == [first, first - apply + 2 * job, first - apply + 3 * job], calibrated
+    start = first - round(job)
+    assert sorted(calibrated.values()) == [start + round(k * job) for k in (1, 2, 3)], calibrated
+
+
+def test_a_helper_job_is_taken_after_the_budgets_queued_before_it_and_its_own(monkeypatch):
+    """A job is taken at its own delay, or later behind the helper's queue: the budgets of the jobs not
+    yet taken plus its own (JOB_BUDGET_S). A recalibration counts its own budget, not a calibration's: taken
+    0.5 s after it started, the frame loop waited 0.25-0.46 s for it (two subjects at 120 Hz)."""
+    from types import SimpleNamespace
+
+    from service.engine import CALIBRATE_APPLY_S, JOB_BUDGET_S, RECALIBRATE_APPLY_S
+
+    monkeypatch.setattr(Engine, "_worker", lambda self: SimpleNamespace(submit=lambda fn, *args: "future"))
+    engine = Engine()
+
+    def subject():
+        return SimpleNamespace(state=SimpleNamespace(frames=100, acc_dt_s=0.01), calibration_job=None,
+                               refine_job=None, layout_job=None)
+
+    a, b, c = subject(), subject(), subject()
+    engine._subjects = {"A": a, "B": b, "C": c}
+    a.refine_job = engine._schedule(a, "recalibration", RECALIBRATE_APPLY_S, print)
+    assert a.refine_job == ("future", 100 + round(RECALIBRATE_APPLY_S * 100), "recalibration")
+    b.calibration_job = engine._schedule(b, "calibration", CALIBRATE_APPLY_S, print)
+    assert b.calibration_job[1] == 100 + round((JOB_BUDGET_S["recalibration"] + JOB_BUDGET_S["calibration"]) * 100)
+    c.layout_job = engine._schedule(c, "layouts", 5.0, print)  # its own delay, longer than the queue
+    assert c.layout_job[1] == 100 + 500
+    a.refine_job = None  # taken: out of the queue
+    assert engine._schedule(a, "refinement", 0.1, print)[1] == 100 + round(
+        (JOB_BUDGET_S["calibration"] + JOB_BUDGET_S["layouts"] + JOB_BUDGET_S["refinement"]) * 100)
 
 
 def test_subjects_seeded_together_do_their_periodic_work_on_different_frames(monkeypatch):
