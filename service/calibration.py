@@ -231,7 +231,7 @@ def _vote_heading(bf: BodyFrame, positions_m: np.ndarray, votes: list[tuple[np.n
         Q = np.where(w[:, :, None] > 0, P, 0.0)
         R, t = _rigid_motions(ref, Q, w)
         err = np.linalg.norm(np.einsum("vyx,vmy->vmx", R, Q - t[:, None]) - ref, axis=2)
-        cut = np.nanquantile(np.where(w > 0, err, np.nan), 0.6, axis=1)
+        cut = _nanquantile_rows(np.where(w > 0, err, np.nan), 0.6)
         keep = ((w > 0) & (err <= cut[:, None])).astype(float)
         R, _ = _rigid_motions(ref, Q, keep)
         total = np.einsum("vyx,vy->x", R, facing)
@@ -730,6 +730,22 @@ def _nanmedian_columns(v: np.ndarray) -> np.ndarray:
     lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[None], 0)[0]
     hi = np.take_along_axis(s, np.maximum(n // 2, 0)[None], 0)[0]
     return np.where(n > 0, 0.5 * (lo + hi), np.nan)
+
+
+def _nanquantile_rows(v: np.ndarray, q: float) -> np.ndarray:
+    """np.nanquantile(v, q, axis=1) of a 2-D array whose rows each hold a finite value, to the bit (its
+    linear interpolation, as numpy computes it). Hand-written: numpy's runs a Python function per row
+    (apply_along_axis), 1.7 ms on 24 x 41 against 30 us here; it was a tenth of a calibration's time
+    (`_vote_heading`). NaN sorts last, so each row's quantile is read at its count."""
+    s = np.sort(v, axis=1)
+    n = np.isfinite(v).sum(1)
+    pos = q * (n - 1)
+    lo = np.floor(pos).astype(np.intp)
+    t = pos - lo
+    rows = np.arange(len(v))
+    a, b = s[rows, lo], s[rows, np.minimum(lo + 1, n - 1)]
+    d = b - a
+    return np.where(t >= 0.5, b - d * (1 - t), a + d * t)  # (numpy's lerp, from the nearer end)
 
 
 def fill_reference(history_m: np.ndarray, n_near: int = 5, frame: int | None = None) -> np.ndarray:

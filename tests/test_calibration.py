@@ -11,9 +11,9 @@ import pytest
 from protocol.skeleton import N_SEGMENTS, SEGMENTS
 from recordings.synthetic import multi_perform, perform
 from service.calibration import (
-    S, CalibrationError, _distance_sd, _mirror_pairs, _mirror_segments, _nanmedian_columns, _rigid_motions,
-    _uncross_sides, body_frame, calibrate, calibrate_from_history, clusters, detect_tpose, fill_reference, is_tpose,
-    lopsided, mirror_index, mirror_name, mirrored_markers, rigid_motion,
+    S, CalibrationError, _distance_sd, _mirror_pairs, _mirror_segments, _nanmedian_columns, _nanquantile_rows,
+    _rigid_motions, _uncross_sides, body_frame, calibrate, calibrate_from_history, clusters, detect_tpose,
+    fill_reference, is_tpose, lopsided, mirror_index, mirror_name, mirrored_markers, rigid_motion,
 )
 
 MARKER_SETS = ("cmu41", "gt53")
@@ -634,6 +634,17 @@ def test_nanmedian_columns_is_numpys_nanmedian():
     with np.errstate(all="ignore"), pytest.warns(RuntimeWarning):
         want = np.nanmedian(v, axis=0)
     np.testing.assert_array_equal(_nanmedian_columns(v), want)
+
+
+@pytest.mark.parametrize("q", [0.0, 0.25, 0.5, 0.6, 1.0])
+def test_nanquantile_rows_is_numpys_nanquantile_to_the_bit(q):
+    rng = np.random.default_rng(3)
+    for scale in (1e-3, 1.0, 10.0):
+        v = scale * rng.random((24, 41))
+        v[rng.random(v.shape) < 0.4] = np.nan
+        v[:, 0] = scale  # (every row holds a finite value)
+        v[5, 1:] = np.nan  # one finite value alone
+        np.testing.assert_array_equal(_nanquantile_rows(v, q), np.nanquantile(v, q, axis=1))
 
 
 def test_lopsided_tells_a_limb_segment_left_empty_beside_its_twin():
