@@ -461,10 +461,11 @@ def rigid_motion(a, b):
 
 
 @_jit
-def distance_misfit(partners, dist_n, mean, var, cur, labeled, rows):
+def distance_misfit(partners, dist_n, mean, var, cur, labeled, rows, cap):
     """The median z = |d - mean| / (sigma + 3 mm) of each marker in `rows` over (up to) its 3 partners
     with the smallest sigma among those labeled now and sampled at least 10 times; NaN with fewer than
-    2 such partners or when the marker is not labeled. Returns (M,), NaN but at `rows`. (partners.distance_misfit)"""
+    2 such partners or when the marker is not labeled. With a finite `cap`, the mean of those z, each
+    capped at `cap`, where it is larger. Returns (M,), NaN but at `rows`. (partners.distance_misfit)"""
     n_rows = rows.shape[0]
     n_part = partners.shape[1]
     out = np.full(cur.shape[0], np.nan)
@@ -498,6 +499,11 @@ def distance_misfit(partners, dist_n, mean, var, cur, labeled, rows):
             best[t] = z[b]
         best.sort()
         out[i] = best[(take - 1) // 2]
+        if cap < np.inf:
+            capped = 0.0
+            for t in range(take):
+                capped += min(best[t], cap)
+            out[i] = max(out[i], capped / take)
     return out
 
 
@@ -515,7 +521,7 @@ def probation(partners, dist_n, mean, var, cur, labeled, provisional, layout_hol
         if labeled[i] and provisional[i] > 0:
             on[n] = i
             n += 1
-    z = distance_misfit(partners, dist_n, mean, var, cur, labeled, on[:n])
+    z = distance_misfit(partners, dist_n, mean, var, cur, labeled, on[:n], np.inf)
     wrong = np.zeros(m, np.bool_)
     for r in range(n):
         wrong[on[r]] = z[on[r]] > z_max
@@ -956,7 +962,7 @@ def warm_up() -> float:
     has_rigid, spread0, err, _ = rigid_check(pos, pred, spread, swing, labeled, 0.01, 0.006)
     unswap(rows.copy(), pos.copy(), pred, err, 0.006)
     far_from_fit(pred, pos, labeled, labeled, partners, rows, 0.1, 0.2)
-    distance_misfit(partners, stats, stats, stats, pos, labeled, rows)
+    distance_misfit(partners, stats, stats, stats, pos, labeled, rows, np.inf)
     probation(partners, stats, stats, stats, pos, labeled, rows, rows, 3.0)
     label_errors(pos, pos, labeled)
     update_distances(stats.copy(), stats.copy(), stats.copy(), stats.copy(), stats.copy(), pos, labeled, 0.02, 0.002)

@@ -87,6 +87,7 @@ from service.partners import (
     _update_distances,
     _update_partners,
     distance_misfit,
+    far_reacquisitions_misfit,
     rigid_predictions,
 )
 from service.segment_search import GROUP_MIN_PLACED, _search_rigid_groups, _search_segments
@@ -596,12 +597,15 @@ def step(
             gate_missing[use] = config.reacquire_gate_m
     reacquired = np.zeros(m, bool)
 
-    def accept(rows, cols, segment_rule: bool):
-        """Take re-acquisitions (rows -> cols) but those their rigid partners' distances refuse and, with
-        segment_rule, those `_unsure_on_unseen_segment` holds back."""
+    def accept(rows, cols, segment_rule: bool, pred: np.ndarray | None = None):
+        """Take re-acquisitions (rows -> cols) but those their rigid partners' distances refuse (more
+        strictly those far from their prediction `pred`, when given) and, with segment_rule, those
+        `_unsure_on_unseen_segment` holds back."""
         point_index[rows] = cols
         cur = _gather(points, point_index)
         wrong = distance_misfit(st, cur, point_index >= 0, rows)[rows] > Z_SUSPECT
+        if pred is not None:
+            wrong |= far_reacquisitions_misfit(st, cur, point_index >= 0, rows, pred, config.reacquire_gate_m)
         wrong |= _still_on_moving(model, st, rows, cur[rows], point_index >= 0, t_ns)
         if segment_rule:
             wrong |= _unsure_on_unseen_segment(model, labeled, rows, cur, use_skel, st.ever_seen, skel_pred,
@@ -644,7 +648,7 @@ def step(
                 gate_missing[labeled] = 0.0
     rows, cols, _ = _assign(pred_missing, gate_missing, points, ~taken)
     if len(rows):
-        labeled, cur = accept(rows, cols, segment_rule=model.has_skeleton)
+        labeled, cur = accept(rows, cols, segment_rule=model.has_skeleton, pred=pred_missing)
     if skel_pred is not None and trusted.any():
         # A second opinion: a marker its partners placed where no point is (partners across a joint that
         # bent while it hid) is looked for where a well-fitting skeleton puts it, inside a narrower gate.

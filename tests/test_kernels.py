@@ -3,6 +3,7 @@ on random data with the awkward cases: unlabeled markers, missing partners, NaN 
 (`kabsch_rms` is checked against a Kabsch by scipy through its wrapper, in test_layouts.)"""
 
 import numpy as np
+import pytest
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
@@ -71,16 +72,20 @@ def test_rigid_predict_reports_the_swing_of_partners_in_a_line_far_from_the_mark
         assert (np.linalg.norm(pred[0] - now[0]) < 0.01) == want
 
 
-def test_distance_misfit_is_the_median_z_over_the_three_most_rigid_partners():
+@pytest.mark.parametrize("cap", [np.inf, 2.0])
+def test_distance_misfit_is_the_median_z_over_the_three_most_rigid_partners(cap):
+    """... or, with a finite cap, the mean of those z each capped at it, where that is larger."""
     for seed in range(5):
         _, cur, labeled, partners, _, var, n, mean = _random_case(seed)
         rows = np.array([0, 2, 3, 5, 7, 11])
-        got = kernels.distance_misfit(partners, n, mean, var, cur, labeled, rows)
+        got = kernels.distance_misfit(partners, n, mean, var, cur, labeled, rows, cap)
         for i in range(len(cur)):
             js = [j for j in partners[i] if j >= 0 and labeled[j] and n[i, j] >= 10] if labeled[i] and i in rows else []
             js = sorted(js, key=lambda j: np.sqrt(var[i, j]))[:3]  # (stable: the first listed wins a tie)
             z = sorted(abs(np.linalg.norm(cur[i] - cur[j]) - mean[i, j]) / (np.sqrt(var[i, j]) + kernels.SKIN_M) for j in js)
             want = z[(len(z) - 1) // 2] if len(z) >= 2 else np.nan
+            if len(z) >= 2 and np.isfinite(cap):
+                want = max(want, np.minimum(z, cap).mean())
             np.testing.assert_allclose(got[i], want, rtol=1e-12)
 
 
@@ -497,7 +502,7 @@ def test_probation_and_label_errors_match_the_numpy_formulation():
         wrong, prov, held = kernels.probation(partners, n, mean, var, cur, labeled, provisional, hold, 1.0)
         on = labeled & (provisional > 0)
         with np.errstate(invalid="ignore"):
-            want = on & (kernels.distance_misfit(partners, n, mean, var, cur, labeled, np.flatnonzero(on)) > 1.0)
+            want = on & (kernels.distance_misfit(partners, n, mean, var, cur, labeled, np.flatnonzero(on), np.inf) > 1.0)
         np.testing.assert_array_equal(wrong, want)
         np.testing.assert_array_equal(prov, np.maximum(provisional - 1, 0))
         np.testing.assert_array_equal(held, np.maximum(hold - 1, 0))

@@ -73,3 +73,42 @@ def test_a_swap_the_running_distance_statistics_absorbed_is_swapped_back(monkeyp
     assert partners.distance_misfit(st, cur, np.ones(8, bool))[[0, 4]].max() < partners.Z_SUSPECT  # absorbed
     partners._repair_by_distances(st, point_index, cur, now, np.zeros(8, bool))
     assert (point_index == np.arange(8)).all() == long_memory
+
+
+@pytest.mark.parametrize("offset_m", [0.10, 0.03])
+def test_a_far_reacquisition_needs_more_than_the_median_of_its_partners(offset_m):
+    """A hidden left forearm marker and its three most rigid partners (the wrist pair and the elbow); a
+    serving right wrist's point at distances that stray from the long-run means by 0.8, 9.0 and 3.7 z (tennis
+    at L2): the median, 3.7, passes Z_SUSPECT. Taken 10 cm from where the marker was predicted (a gate
+    widened to 135 mm), the capped mean (4.5) refuses it; 3 cm from it, within the re-acquisition gate's
+    base, the median stays the rule."""
+    model = track_state.SubjectModel("P", ("LFRM", "LWRA", "LELB", "LWRB"), np.full(4, -1), np.zeros((4, 3)),
+                                     np.zeros((14, 3)))
+    st = tracker.new_state(model, np.zeros((4, 3)), 0)
+    means, sigmas = np.array([0.163, 0.109, 0.153]), np.array([0.0032, 0.0060, 0.0063])
+    st.dist_n[:] = 200
+    st.dist_mean_m[0, 1:] = st.dist_mean_m[1:, 0] = means
+    st.dist_var_m2[0, 1:] = st.dist_var_m2[1:, 0] = sigmas**2
+    st.partners[:] = -1
+    st.partners[0, :3] = [1, 2, 3]
+    z = np.array([0.8, 9.0, 3.7])
+    dist = means + np.array([1, 1, -1]) * z * (sigmas + 0.003)
+    # three partners placed on the axes, the marker's point where those distances meet
+    cur = np.zeros((4, 3))
+    cur[1:] = np.eye(3) * 0.1
+    x = _trilaterate(cur[1:], dist)
+    cur[0] = x
+    labeled = np.ones(4, bool)
+    got = partners.distance_misfit(st, cur, labeled, np.array([0]))[0]
+    np.testing.assert_allclose(got, 3.7, atol=1e-6)  # the median passes
+    pred = cur.copy()
+    pred[0] = x + [offset_m, 0.0, 0.0]
+    refused = partners.far_reacquisitions_misfit(st, cur, labeled, np.array([0]), pred, 0.045)
+    assert refused[0] == (offset_m > 0.045)
+
+
+def _trilaterate(anchors: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """A point at distances `dist` from three `anchors` (the solution nearer the origin)."""
+    from scipy.optimize import least_squares
+
+    return least_squares(lambda x: np.linalg.norm(anchors - x, axis=1) - dist, np.full(3, 0.1)).x
