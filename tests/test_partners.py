@@ -80,7 +80,7 @@ def test_a_far_reacquisition_needs_more_than_the_median_of_its_partners(offset_m
     """A hidden left forearm marker and its three most rigid partners (the wrist pair and the elbow); a
     serving right wrist's point at distances that stray from the long-run means by 0.8, 9.0 and 3.7 z (tennis
     at L2): the median, 3.7, passes Z_SUSPECT. Taken 10 cm from where the marker was predicted (a gate
-    widened to 135 mm), the capped mean (4.5) refuses it; 3 cm from it, within the re-acquisition gate's
+    widened to 135 mm), the capped mean (4.2) refuses it; 3 cm from it, within the re-acquisition gate's
     base, the median stays the rule."""
     model = track_state.SubjectModel("P", ("LFRM", "LWRA", "LELB", "LWRB"), np.full(4, -1), np.zeros((4, 3)),
                                      np.zeros((14, 3)))
@@ -101,6 +101,8 @@ def test_a_far_reacquisition_needs_more_than_the_median_of_its_partners(offset_m
     labeled = np.ones(4, bool)
     got = partners.distance_misfit(st, cur, labeled, np.array([0]))[0]
     np.testing.assert_allclose(got, 3.7, atol=1e-6)  # the median passes
+    capped = partners.distance_misfit(st, cur, labeled, np.array([0]), cap=partners.FAR_Z_CAP)[0]
+    np.testing.assert_allclose(capped, (0.8 + partners.FAR_Z_CAP + 3.7) / 3, atol=1e-6)
     pred = cur.copy()
     pred[0] = x + [offset_m, 0.0, 0.0]
     refused = partners.far_reacquisitions_misfit(st, cur, labeled, np.array([0]), pred, 0.045)
@@ -108,7 +110,7 @@ def test_a_far_reacquisition_needs_more_than_the_median_of_its_partners(offset_m
 
 
 def _trilaterate(anchors: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """A point at distances `dist` from three `anchors` (the solution nearer the origin)."""
+    """A point at distances `dist` from three `anchors` (least squares, to rounding)."""
     from scipy.optimize import least_squares
 
-    return least_squares(lambda x: np.linalg.norm(anchors - x, axis=1) - dist, np.full(3, 0.1)).x
+    return least_squares(lambda x: np.linalg.norm(anchors - x, axis=1) - dist, np.full(3, 0.1), xtol=1e-15, ftol=1e-15, gtol=1e-15).x
