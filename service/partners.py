@@ -26,7 +26,8 @@ Z_SUSPECT = 4.0  # a label whose distances to its most rigid partners stray more
 #: partners' z, each capped at this, average more than Z_SUSPECT (`far_reacquisitions_misfit`). (Dev
 #: suite, 18 realizations: L2 99.334 -> 99.338 %, precision 99.410 -> 99.415 %; L3 98.641 -> 98.640 %,
 #: precision 99.081 -> 99.101 %; the tennis player's L2 precision 99.893 -> 99.903 %, accuracy +0.014. On
-#: every re-acquisition, near its prediction too, the tennis files' accuracy fell: L2 -0.025, L3 -0.095.)
+#: every re-acquisition, near its prediction too, the tennis files' accuracy fell: L2 -0.025, L3 -0.095.
+#: T-pose mode, squat and HDM_mm, seeds 0-5: L3 -0.079, L2 unchanged; see benchmarks/CHANGES.md.)
 FAR_Z_CAP = 2.0 * Z_SUSPECT
 #: The partner distances are kept twice: a running mean/variance that follows the body within ~100 frames
 #: (partners, weights, checks), and one with this smaller weight per update (~1000 frames), which a fresh
